@@ -1,0 +1,450 @@
+"""Streaming reader and writer for safetensors checkpoints, single-file or sharded (Hugging Face layout).
+
+Why not `safetensors.torch.load_file`/`save_file`: the first memory-maps whole files (touched pages count
+towards the process's resident memory), the second needs every tensor in memory at once. Checkpoints of a
+7B policy do not fit that, so this module parses the (simple) format itself: an 8-byte little-endian header
+length, a JSON header `{name: {dtype, shape, data_offsets}, "__metadata__": {str: str}}`, then raw
+little-endian bytes. Reading copies one tensor at a time into an owned buffer (`readinto`); writing computes
+every header up front from names, shapes and dtypes, then streams tensor data in that order.
+
+Layouts understood by `Checkpoint`:
+- a `.safetensors` file;
+- a directory with `model.safetensors.index.json` (`{"metadata": {...}, "weight_map": {name: shard}}`);
+- a directory with a single `model.safetensors`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import shutil
+import struct
+import tempfile
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+INDEX_NAME = "model.safetensors.index.json"
+SINGLE_NAME = "model.safetensors"
+DEFAULT_MAX_SHARD_BYTES = 2 << 30
+HEADER_LIMIT = 100 << 20  # the format's own upper bound on header size
+
+DTYPES: dict[str, torch.dtype] = {
+    "F64": torch.float64,
+    "F32": torch.float32,
+    "F16": torch.float16,
+    "BF16": torch.bfloat16,
+    "F8_E4M3": torch.float8_e4m3fn,
+    "F8_E5M2": torch.float8_e5m2,
+    "I64": torch.int64,
+    "I32": torch.int32,
+    "I16": torch.int16,
+    "I8": torch.int8,
+    "U8": torch.uint8,
+    "BOOL": torch.bool,
+}
+DTYPE_NAMES: dict[torch.dtype, str] = {v: k for k, v in DTYPES.items()}
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is malformed, incomplete, or does not fit the operation asked of it."""
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    """Where one tensor lives and what it is, read from a header without touching its data."""
+
+    name: str
+    dtype: str  # safetensors spelling, e.g. "BF16"
+    shape: tuple[int, ...]
+    file: Path
+    begin: int  # absolute byte offset in `file`
+    end: int
+
+    @property
+    def nbytes(self) -> int:
+        return self.end - self.begin
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        return DTYPES[self.dtype]
+
+
+def _read_header(path: Path) -> tuple[dict, int]:
+    """Parse one file's header and check the file is long enough for every tensor it declares."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise CheckpointError(f"missing file: {path}") from None
+    if size < 8:
+        raise CheckpointError(f"truncated file (shorter than the 8-byte header length): {path}")
+    with open(path, "rb") as f:
+        (n,) = struct.unpack("<Q", f.read(8))
+        if n > HEADER_LIMIT or 8 + n > size:
+            raise CheckpointError(
+                f"truncated or not a safetensors file (header of {n} bytes, file of {size}): {path}"
+            )
+        try:
+            header = json.loads(f.read(n))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise CheckpointError(f"corrupt safetensors header in {path}: {e}") from None
+    data_start = 8 + n
+    ends = [v["data_offsets"][1] for k, v in header.items() if k != "__metadata__"]
+    need = data_start + max(ends, default=0)
+    if need > size:
+        raise CheckpointError(f"truncated file: {path} has {size} bytes, its header declares {need}")
+    return header, data_start
+
+
+def _specs_of_file(path: Path) -> tuple[dict[str, TensorSpec], dict[str, str]]:
+    header, start = _read_header(path)
+    meta = header.pop("__metadata__", None) or {}
+    specs = {}
+    for name, v in header.items():
+        if v["dtype"] not in DTYPES:
+            raise CheckpointError(f"unsupported dtype {v['dtype']} for tensor {name!r} in {path}")
+        b, e = v["data_offsets"]
+        specs[name] = TensorSpec(name, v["dtype"], tuple(v["shape"]), path, start + b, start + e)
+    return specs, meta
+
+
+class Checkpoint:
+    """A validated, lazily read safetensors checkpoint (file, sharded directory, or directory with one file).
+
+    Construction reads only headers: it fails on missing shards, truncated files and index entries that
+    disagree with the shards, so that no work starts on a checkpoint that cannot be read to the end.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        if self.path.is_dir():
+            index = self.path / INDEX_NAME
+            if index.exists():
+                self.files, self.specs, self.metadata = self._load_index(index)
+            elif (self.path / SINGLE_NAME).exists():
+                self.files = [self.path / SINGLE_NAME]
+                self.specs, self.metadata = _specs_of_file(self.files[0])
+            else:
+                raise CheckpointError(f"{self.path} has neither {INDEX_NAME} nor {SINGLE_NAME}")
+        elif self.path.exists():
+            self.files = [self.path]
+            self.specs, self.metadata = _specs_of_file(self.path)
+        else:
+            raise CheckpointError(f"no such checkpoint: {self.path}")
+
+    def _load_index(self, index: Path):
+        try:
+            doc = json.loads(index.read_text())
+            weight_map: dict[str, str] = doc["weight_map"]
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            raise CheckpointError(f"unreadable index {index}: {e!r}") from None
+        shards = list(dict.fromkeys(weight_map.values()))
+        missing = [s for s in shards if not (self.path / s).exists()]
+        if missing:
+            raise CheckpointError(f"{index} names missing shard(s): {', '.join(missing)}")
+        by_shard = {s: _specs_of_file(self.path / s) for s in shards}
+        specs: dict[str, TensorSpec] = {}
+        for shard, (shard_specs, _) in by_shard.items():
+            for name, spec in shard_specs.items():
+                if weight_map.get(name) == shard:
+                    specs[name] = spec
+        absent = [k for k, s in weight_map.items() if k not in by_shard[s][0]]
+        if absent:
+            raise CheckpointError(
+                f"{len(absent)} tensor(s) in {index} are not in their shard: {_few(absent)}"
+            )
+        ordered = {k: specs[k] for k in sorted(specs, key=lambda k: (str(specs[k].file), specs[k].begin))}
+        meta = dict(by_shard[shards[0]][1]) if shards else {}
+        meta.update({k: str(v) for k, v in (doc.get("metadata") or {}).items() if k != "total_size"})
+        return [self.path / s for s in shards], ordered, meta
+
+    def keys(self) -> list[str]:
+        """Tensor names in storage order (shard by shard, by offset): the order that reads sequentially."""
+        return list(self.specs)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.specs
+
+    def __len__(self) -> int:
+        return len(self.specs)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(s.nbytes for s in self.specs.values())
+
+    @property
+    def largest_tensor_nbytes(self) -> int:
+        return max((s.nbytes for s in self.specs.values()), default=0)
+
+    def read_raw(self, name: str) -> torch.Tensor:
+        """Read one tensor's bytes into fresh, owned memory (no memory map stays behind)."""
+        spec = self.specs[name]
+        buf = torch.empty(spec.nbytes, dtype=torch.uint8)
+        with open(spec.file, "rb", buffering=0) as f:
+            f.seek(spec.begin)
+            view = memoryview(buf.numpy())
+            got = 0
+            while got < spec.nbytes:
+                n = f.readinto(view[got:])
+                if not n:
+                    raise CheckpointError(f"{spec.file} ended while reading tensor {name!r}")
+                got += n
+        return buf
+
+    def typed(self, name: str, raw: torch.Tensor) -> torch.Tensor:
+        """View bytes from `read_raw` as the tensor they encode."""
+        spec = self.specs[name]
+        return raw.view(spec.torch_dtype).reshape(spec.shape)
+
+    def get(self, name: str) -> torch.Tensor:
+        return self.typed(name, self.read_raw(name))
+
+    def items(self) -> Iterator[tuple[str, torch.Tensor]]:
+        for name in self.specs:
+            yield name, self.get(name)
+
+    def sha256(self, file_hashes: Mapping[Path, str] | None = None) -> str:
+        """Content hash: the file's sha256; for a sharded directory, the sha256 of `{shard: sha256}` JSON.
+
+        `file_hashes` supplies per-file digests already computed elsewhere (e.g. while streaming).
+        """
+        hashes = {f: (file_hashes or {}).get(f) or file_sha256(f) for f in self.files}
+        if len(self.files) == 1 and not (self.path / INDEX_NAME).exists():
+            return hashes[self.files[0]]
+        doc = json.dumps({f.name: h for f, h in sorted(hashes.items())}, sort_keys=True)
+        return hashlib.sha256(doc.encode()).hexdigest()
+
+
+def file_sha256(path: str | os.PathLike, chunk: int = 8 << 20) -> str:
+    h = hashlib.sha256()
+    buf = bytearray(chunk)
+    view = memoryview(buf)
+    with open(path, "rb", buffering=0) as f:
+        while n := f.readinto(buf):
+            h.update(view[:n])
+    return h.hexdigest()
+
+
+def _few(names: list[str], k: int = 5) -> str:
+    shown = ", ".join(repr(n) for n in names[:k])
+    return shown + (f" (+{len(names) - k} more)" if len(names) > k else "")
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary directory next to `out`; on success it is fsynced and renamed to `out`.
+
+    On any exception the temporary directory is removed and `out` is left as it was.
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} exists (pass overwrite=True to replace it)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        yield tmp
+        for f in tmp.iterdir():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        _fsync_dir(tmp)
+        old = None
+        if out.exists():
+            old = out.parent / f".{out.name}.old-{os.getpid()}"
+            os.replace(out, old)
+        os.replace(tmp, out)
+        _fsync_dir(out.parent)
+        if old is not None:
+            shutil.rmtree(old) if old.is_dir() else old.unlink()
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _header_bytes(entries: list[tuple[str, str, tuple[int, ...], int, int]], metadata: Mapping[str, str]):
+    header: dict = {"__metadata__": dict(metadata)} if metadata else {}
+    for name, dtype, shape, b, e in entries:
+        header[name] = {"dtype": dtype, "shape": list(shape), "data_offsets": [b, e]}
+    raw = json.dumps(header, separators=(",", ":")).encode()
+    return raw + b" " * (-len(raw) % 8)  # pad so tensor data starts 8-byte aligned
+
+
+class ShardedWriter:
+    """Write tensors one at a time into a safetensors file or a sharded directory, atomically.
+
+    `specs` fixes the names (in write order), dtypes and shapes, so every header is known before any data.
+    `out` ending in `.safetensors` gives one file; anything else gives a directory: `model.safetensors`
+    when everything fits into one shard, else `model-0000i-of-0000n.safetensors` shards and
+    `model.safetensors.index.json`.
+    Metadata values whose final text is only known at the end (e.g. input hashes computed while reading)
+    can be changed with `set_metadata` before closing, as long as they keep their byte length.
+    Use as a context manager; nothing becomes visible under `out` unless the block completes.
+    """
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        specs: Mapping[str, tuple[torch.dtype, tuple[int, ...]]],
+        metadata: Mapping[str, str] | None = None,
+        max_shard_bytes: int = DEFAULT_MAX_SHARD_BYTES,
+        overwrite: bool = False,
+    ):
+        self.out = Path(out)
+        self.metadata = dict(metadata or {})
+        self.overwrite = overwrite
+        self.single_file = self.out.suffix == ".safetensors"
+        sizes = {n: math.prod(s) * torch.empty((), dtype=d).element_size() for n, (d, s) in specs.items()}
+        self._specs = {n: (DTYPE_NAMES[d], tuple(s)) for n, (d, s) in specs.items()}
+        shards: list[list[str]] = [[]]
+        used = 0
+        for name in specs:
+            if not self.single_file and shards[-1] and used + sizes[name] > max_shard_bytes:
+                shards.append([])
+                used = 0
+            shards[-1].append(name)
+            used += sizes[name]
+        n = len(shards)
+        if self.single_file:
+            self.shard_names = [self.out.name]
+        elif n == 1:
+            self.shard_names = [SINGLE_NAME]
+        else:
+            self.shard_names = [f"model-{i + 1:05d}-of-{n:05d}.safetensors" for i in range(n)]
+        self._shards = shards
+        self._sizes = sizes
+        self._order = [name for shard in shards for name in shard]
+        self._pos = 0
+        self._ctx = None
+        self._files: list = []
+        self._header_len: list[int] = []
+
+    @property
+    def order(self) -> list[str]:
+        return list(self._order)
+
+    def _entries(self, shard: list[str]):
+        off = 0
+        for name in shard:
+            dtype, shape = self._specs[name]
+            yield name, dtype, shape, off, off + self._sizes[name]
+            off += self._sizes[name]
+
+    def __enter__(self) -> ShardedWriter:
+        if self.single_file:
+            if self.out.exists() and not self.overwrite:
+                raise FileExistsError(f"{self.out} exists (pass overwrite=True to replace it)")
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{self.out.name}.tmp-", dir=self.out.parent)
+            os.close(fd)
+            self._dir = None
+            paths = [Path(tmp)]
+        else:
+            self._ctx = atomic_directory(self.out, self.overwrite)
+            self._dir = self._ctx.__enter__()
+            paths = [self._dir / s for s in self.shard_names]
+        self._paths = paths
+        try:
+            for path, shard in zip(paths, self._shards, strict=True):
+                f = open(path, "wb")
+                self._files.append(f)
+                head = _header_bytes(list(self._entries(shard)), self.metadata)
+                self._header_len.append(len(head))
+                f.write(struct.pack("<Q", len(head)))
+                f.write(head)
+        except BaseException:
+            self._abort()
+            raise
+        self._shard_of = {name: i for i, shard in enumerate(self._shards) for name in shard}
+        return self
+
+    def write(self, name: str, tensor: torch.Tensor) -> None:
+        """Append the next tensor; it must be the next name of `order`, with the declared dtype and shape."""
+        expected = self._order[self._pos] if self._pos < len(self._order) else None
+        if name != expected:
+            raise CheckpointError(f"writer expected tensor {expected!r} next, got {name!r}")
+        dtype, shape = self._specs[name]
+        if DTYPE_NAMES.get(tensor.dtype) != dtype or tuple(tensor.shape) != shape:
+            raise CheckpointError(
+                f"tensor {name!r}: got {tensor.dtype} {tuple(tensor.shape)}, declared {dtype} {shape}"
+            )
+        t = tensor.detach().to("cpu").contiguous()
+        self._files[self._shard_of[name]].write(memoryview(t.reshape(-1).view(torch.uint8).numpy()))
+        self._pos += 1
+
+    def set_metadata(self, key: str, value: str) -> None:
+        """Replace a metadata value by one of the same encoded length (rewritten in place at close)."""
+        old = self.metadata.get(key)
+        if old is None or len(json.dumps(old)) != len(json.dumps(value)):
+            raise ValueError(f"metadata {key!r} must exist and keep its length to be set late")
+        self.metadata[key] = value
+
+    def _abort(self) -> None:
+        for f in self._files:
+            f.close()
+        if self._ctx is not None:
+            with contextlib.suppress(BaseException):
+                self._ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
+        else:
+            for p in self._paths:
+                p.unlink(missing_ok=True)
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None:
+            self._abort()
+            return False
+        if self._pos != len(self._order):
+            self._abort()
+            raise CheckpointError(f"writer closed after {self._pos} of {len(self._order)} tensors")
+        try:
+            self._finish()
+        except BaseException:
+            self._abort()
+            raise
+        return False
+
+    def _finish(self) -> None:
+        for f, shard, n in zip(self._files, self._shards, self._header_len, strict=True):
+            head = _header_bytes(list(self._entries(shard)), self.metadata)
+            assert len(head) == n
+            f.seek(8)
+            f.write(head)
+            f.flush()
+            os.fsync(f.fileno())
+            f.close()
+        if self.single_file:
+            os.replace(self._paths[0], self.out)
+            _fsync_dir(self.out.parent)
+            return
+        if len(self._shards) > 1:
+            index = {
+                "metadata": {"total_size": sum(self._sizes.values()), **self.metadata},
+                "weight_map": {name: self.shard_names[i] for name, i in self._shard_of.items()},
+            }
+            (self._dir / INDEX_NAME).write_text(json.dumps(index, indent=2))
+        self._ctx.__exit__(None, None, None)
+
+
+def write_checkpoint(
+    out: str | os.PathLike,
+    tensors: Mapping[str, torch.Tensor],
+    metadata: Mapping[str, str] | None = None,
+    max_shard_bytes: int = DEFAULT_MAX_SHARD_BYTES,
+    overwrite: bool = False,
+) -> None:
+    """Write an in-memory dict with the same layout and atomicity as `ShardedWriter` (small checkpoints)."""
+    specs = {n: (t.dtype, tuple(t.shape)) for n, t in tensors.items()}
+    with ShardedWriter(out, specs, metadata, max_shard_bytes, overwrite) as w:
+        for name in w.order:
+            w.write(name, tensors[name])

@@ -1,0 +1,232 @@
+"""Streaming extract/merge/stats against a naive full-load implementation, and the bad-input errors."""
+
+import json
+import math
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from capvector_core.safetensors_io import Checkpoint, CheckpointError, write_checkpoint
+from capvector_core.vector_ops import VectorOpError, extract, merge, select_names, stats
+
+
+def _random_ckpt(dtype, seed, shift=0.0):
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "backbone.layers.0.weight": (torch.randn(32, 16, generator=g) + shift).to(dtype),
+        "backbone.layers.0.bias": torch.randn(32, generator=g).to(dtype),
+        "backbone.layers.1.weight": torch.randn(16, 32, generator=g).to(dtype),
+        "head.proj.weight": torch.randn(4, 16, generator=g).to(dtype),
+        "head.scale": torch.randn((), generator=g).to(dtype),
+        "buffers.position_ids": torch.arange(10),
+    }
+
+
+def _write(tmp_path, name, tensors, sharded, metadata=None):
+    if sharded:
+        out = tmp_path / name
+        write_checkpoint(out, tensors, metadata, max_shard_bytes=1500)
+        assert len(Checkpoint(out).files) > 1
+    else:
+        out = tmp_path / f"{name}.safetensors"
+        write_checkpoint(out, tensors, metadata)
+    return out
+
+
+def _load(path):
+    c = Checkpoint(path)
+    return {k: load_file(str(c.specs[k].file))[k] for k in c.keys()}
+
+
+def _naive_sub(a, b):
+    return {k: (a[k].float() - b[k].float()).to(a[k].dtype) if a[k].is_floating_point() else a[k] for k in a}
+
+
+@pytest.mark.parametrize("sharded", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16, torch.bfloat16])
+def test_extract_and_merge_match_naive(tmp_path, dtype, sharded):
+    pt, ft, ao = (_random_ckpt(dtype, s) for s in (0, 1, 2))
+    p_pt, p_ft, p_ao = (_write(tmp_path, n, t, sharded) for n, t in (("pt", pt), ("ft", ft), ("ao", ao)))
+    out_ext = tmp_path / ("gamma" if sharded else "gamma.safetensors")
+    extract(p_ao, p_ft, out_ext, base=p_pt, max_shard_bytes=1500)
+    gamma = _load(out_ext)
+    want = _naive_sub(ao, ft)
+    assert gamma.keys() == want.keys()
+    for k in want:
+        assert gamma[k].dtype == want[k].dtype and torch.equal(gamma[k], want[k]), k
+
+    out_m = tmp_path / ("meta" if sharded else "meta.safetensors")
+    merge(p_pt, [(out_ext, 1.1)], out_m, exclude=["head.*"], max_shard_bytes=1500)
+    merged = _load(out_m)
+    for k, v in pt.items():
+        if v.is_floating_point() and not k.startswith("head."):
+            expect = torch.add(v.float(), gamma[k].float(), alpha=1.1).to(dtype)
+        else:
+            expect = v
+        assert merged[k].dtype == v.dtype and torch.equal(merged[k], expect), k
+
+    meta = Checkpoint(out_m).metadata
+    inputs = json.loads(meta["capvector.inputs"])
+    assert inputs["base"]["sha256"] == Checkpoint(p_pt).sha256()
+    assert inputs["vector_0"]["sha256"] == Checkpoint(out_ext).sha256()
+    assert json.loads(meta["capvector.coefficients"]) == [1.1]
+    assert Checkpoint(out_ext).metadata["capvector.base_sha256"] == Checkpoint(p_pt).sha256()
+
+
+def test_merge_several_vectors_and_single_file_readable_by_safetensors(tmp_path):
+    pt, v1, v2 = (_random_ckpt(torch.float32, s) for s in (0, 1, 2))
+    for t in (v1, v2):
+        t["buffers.position_ids"] = pt["buffers.position_ids"]
+    paths = [_write(tmp_path, n, t, False) for n, t in (("pt", pt), ("v1", v1), ("v2", v2))]
+    out = tmp_path / "m.safetensors"
+    merge(paths[0], [(paths[1], 0.5), (paths[2], -2.0)], out)
+    got = load_file(out)
+    for k in pt:
+        if pt[k].is_floating_point():
+            torch.testing.assert_close(got[k], pt[k] + 0.5 * v1[k] - 2.0 * v2[k], rtol=1e-6, atol=1e-6)
+
+
+def test_key_shape_dtype_mismatches_write_nothing(tmp_path):
+    a = _random_ckpt(torch.float32, 0)
+    p_a = _write(tmp_path, "a", a, False)
+    cases = {
+        "missing": {k: v for k, v in a.items() if k != "head.scale"},
+        "extra": {**a, "head.extra": torch.zeros(2)},
+        "shape": {**a, "head.proj.weight": torch.zeros(4, 15)},
+        "dtype": {**a, "head.proj.weight": a["head.proj.weight"].half()},
+    }
+    for case, t in cases.items():
+        p_b = _write(tmp_path, case, t, False)
+        with pytest.raises(VectorOpError) as e:
+            extract(p_a, p_b, tmp_path / f"out_{case}.safetensors")
+        assert "head." in str(e.value)
+        with pytest.raises(VectorOpError):
+            merge(p_a, [(p_b, 1.0)], tmp_path / f"merged_{case}")
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("out_", "merged_", "."))) == []
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+@pytest.mark.parametrize("sharded", [False, True])
+def test_non_finite_input_named_and_nothing_written(tmp_path, bad, sharded):
+    a, b = _random_ckpt(torch.bfloat16, 0), _random_ckpt(torch.bfloat16, 1)
+    b["backbone.layers.1.weight"][3, 3] = bad
+    p_a, p_b = _write(tmp_path, "a", a, sharded), _write(tmp_path, "b", b, sharded)
+    before = set(tmp_path.iterdir())
+    with pytest.raises(VectorOpError, match=r"backbone\.layers\.1\.weight.*subtrahend"):
+        extract(p_a, p_b, tmp_path / "g", max_shard_bytes=1500)
+    with pytest.raises(VectorOpError, match=r"backbone\.layers\.1\.weight"):
+        merge(p_a, [(p_b, 1.0)], tmp_path / "m.safetensors")
+    assert set(tmp_path.iterdir()) == before
+
+
+def test_float16_overflow_refused(tmp_path):
+    a = {"w": torch.full((4,), 60000.0, dtype=torch.float16)}
+    b = {"w": torch.full((4,), -60000.0, dtype=torch.float16)}
+    p_a, p_b = _write(tmp_path, "a", a, False), _write(tmp_path, "b", b, False)
+    with pytest.raises(VectorOpError, match="overflows"):
+        extract(p_a, p_b, tmp_path / "g.safetensors")
+
+
+def test_non_float_tensors_must_be_equal(tmp_path):
+    a, b = _random_ckpt(torch.float32, 0), _random_ckpt(torch.float32, 1)
+    b["buffers.position_ids"] = torch.arange(10) + 1
+    p_a, p_b = _write(tmp_path, "a", a, False), _write(tmp_path, "b", b, False)
+    with pytest.raises(VectorOpError, match="position_ids"):
+        extract(p_a, p_b, tmp_path / "g.safetensors")
+
+
+def test_filters(tmp_path):
+    names = ["backbone.layers.0.weight", "backbone.layers.1.weight", "head.proj.weight"]
+    assert select_names(names, include=["backbone.*"]) == names[:2]
+    assert select_names(names, include=[r"re:backbone\.layers\.[1-9]\..*"]) == names[1:2]
+    assert select_names(names, exclude=["*.proj.*"]) == names[:2]
+    with pytest.raises(VectorOpError, match="match no tensor"):
+        select_names(names, include=["encoder.*"])
+    with pytest.raises(VectorOpError, match="selects no tensor"):
+        select_names(names, include=["backbone.*"], exclude=["*weight"])
+    a, b = _random_ckpt(torch.float32, 0), _random_ckpt(torch.float32, 1)
+    p_a, p_b = _write(tmp_path, "a", a, False), _write(tmp_path, "b", b, False)
+    with pytest.raises(VectorOpError, match="match no tensor"):
+        extract(p_a, p_b, tmp_path / "g.safetensors", include=["nothing.*"])
+    assert not (tmp_path / "g.safetensors").exists()
+
+
+def test_partial_vector_and_wrong_base(tmp_path):
+    pt, ft, ao, other = (_random_ckpt(torch.float32, s) for s in (0, 1, 2, 3))
+    p_pt, p_ft, p_ao, p_other = (
+        _write(tmp_path, n, t, False) for n, t in (("pt", pt), ("ft", ft), ("ao", ao), ("other", other))
+    )
+    g = tmp_path / "g.safetensors"
+    extract(p_ao, p_ft, g, include=["backbone.*"], base=p_pt)
+    assert Checkpoint(g).keys() == [k for k in pt if k.startswith("backbone.")]
+    out = tmp_path / "m.safetensors"
+    merge(p_pt, [(g, 1.0)], out)
+    got = load_file(out)
+    assert torch.equal(got["head.proj.weight"], pt["head.proj.weight"])
+    torch.testing.assert_close(
+        got["backbone.layers.0.weight"],
+        pt["backbone.layers.0.weight"] + ao["backbone.layers.0.weight"] - ft["backbone.layers.0.weight"],
+    )
+    with pytest.raises(VectorOpError, match="force=True"):
+        merge(p_other, [(g, 1.0)], tmp_path / "wrong.safetensors")
+    assert not (tmp_path / "wrong.safetensors").exists()
+    merge(p_other, [(g, 1.0)], tmp_path / "forced.safetensors", force=True)
+    # a full (non-partial) vector must cover every tensor of base
+    bigger = _write(tmp_path, "big", {**pt, "extra.w": torch.zeros(3)}, False)
+    with pytest.raises(VectorOpError, match="missing from vector 0"):
+        merge(bigger, [(p_ao, 1.0)], tmp_path / "x.safetensors")
+
+
+def test_missing_shard_and_truncated_file(tmp_path):
+    a = _random_ckpt(torch.float32, 0)
+    sharded = _write(tmp_path, "sh", a, True)
+    victim = Checkpoint(sharded).files[-1]
+    single = _write(tmp_path, "one", a, False)
+    raw = single.read_bytes()
+    (tmp_path / "trunc.safetensors").write_bytes(raw[:-10])
+    (tmp_path / "short.safetensors").write_bytes(raw[:5])
+    with pytest.raises(CheckpointError, match="truncated"):
+        Checkpoint(tmp_path / "trunc.safetensors")
+    with pytest.raises(CheckpointError, match="truncated"):
+        Checkpoint(tmp_path / "short.safetensors")
+    with pytest.raises(CheckpointError, match="truncated"):
+        extract(tmp_path / "trunc.safetensors", single, tmp_path / "g.safetensors")
+    victim.unlink()
+    with pytest.raises(CheckpointError, match=f"missing shard.*{victim.name}"):
+        merge(sharded, [(single, 1.0)], tmp_path / "m")
+    assert not (tmp_path / "g.safetensors").exists() and not (tmp_path / "m").exists()
+
+
+def test_reads_checkpoints_written_by_safetensors(tmp_path):
+    a, b = _random_ckpt(torch.float16, 0), _random_ckpt(torch.float16, 1)
+    save_file(a, tmp_path / "a.safetensors")
+    save_file(b, tmp_path / "b.safetensors")
+    extract(tmp_path / "a.safetensors", tmp_path / "b.safetensors", tmp_path / "g.safetensors")
+    got = load_file(tmp_path / "g.safetensors")
+    for k, v in _naive_sub(a, b).items():
+        assert torch.equal(got[k], v)
+
+
+def test_stats_against_hand_computation(tmp_path):
+    base, v, ref = (_random_ckpt(torch.float32, s) for s in (0, 1, 2))
+    p_base, p_v, p_ref = (_write(tmp_path, n, t, False) for n, t in (("b", base), ("v", v), ("r", ref)))
+    rows = stats(p_v, base=p_base, reference_vector=p_ref, group_depth=1)
+    by = {(r.level, r.name): r for r in rows}
+    k = "head.proj.weight"
+    g, w, r = v[k].double(), base[k].double(), ref[k].double()
+    row = by[("tensor", k)]
+    assert row.l2 == pytest.approx(g.norm().item())
+    assert row.relative_norm == pytest.approx((g.norm() / w.norm()).item())
+    assert row.cosine == pytest.approx(
+        torch.nn.functional.cosine_similarity(g.flatten(), r.flatten(), 0).item()
+    )
+    assert row.sign_agreement == pytest.approx((torch.sign(g) == torch.sign(r)).double().mean().item())
+    head = [n for n in v if n.startswith("head.")]
+    gh = torch.cat([v[n].double().flatten() for n in head])
+    rh = torch.cat([ref[n].double().flatten() for n in head])
+    grp = by[("group", "head")]
+    assert grp.numel == gh.numel() and grp.l2 == pytest.approx(gh.norm().item())
+    assert grp.cosine == pytest.approx(torch.nn.functional.cosine_similarity(gh, rh, 0).item())
+    assert ("all", "*") in by and ("tensor", "buffers.position_ids") not in by
+    assert all(isinstance(r.model_dump(), dict) for r in rows)
