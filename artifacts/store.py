@@ -1,0 +1,561 @@
+"""Content-addressed artifact store on a local directory or any fsspec filesystem.
+
+Layout under the root:
+    objects/<id[:2]>/<id>/<files...>   the content (one file, or a directory tree)
+    objects/<id[:2]>/<id>.json         the sidecar (ArtifactRecord); written last = the commit point
+    tmp/<uuid>/                        staging; a killed writer leaves garbage only here
+    runs/<flow_run_id>.json            flow-run records, so the catalogue can be rebuilt from the store
+
+An artifact is visible only once its sidecar exists; an object directory without one is garbage that
+`gc` removes. Ids: sha256 of the file bytes (so `sha256sum` agrees) or, for a directory, of its
+canonical manifest (see hashing.manifest_bytes).
+"""
+
+import errno
+import io
+import json
+import os
+import posixpath
+import re
+import shutil
+import time
+import uuid
+from collections.abc import Iterable, Iterator
+from datetime import datetime
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import fsspec
+from fsspec.implementations.local import LocalFileSystem
+from pydantic import BaseModel
+
+from artifacts import home as home_mod
+from artifacts.errors import (
+    AmbiguousId,
+    ArtifactNotFound,
+    CorruptArtifact,
+    MalformedId,
+    PathEscape,
+    UnknownParent,
+)
+from artifacts.hashing import copy_and_hash, hash_file, hash_stream, manifest_id
+from artifacts.provenance import code_version
+from artifacts.records import ArtifactRecord, FileEntry, ParentRef, RunRecord, safe_relpath
+
+PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
+RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+ParentLike = ParentRef | tuple[str, str] | tuple[str, str, dict[str, Any]]
+
+
+def _fsync_dir(path: str) -> None:
+    """Make a rename durable: POSIX only persists a directory entry once the directory is fsynced."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class ArtifactStore:
+    """Write-once, verify-on-read storage of files and directories named by their sha256."""
+
+    def __init__(
+        self, root: str | os.PathLike[str] | None = None, cache_dir: str | os.PathLike[str] | None = None
+    ):
+        self.url = str(root) if root is not None else home_mod.store_url(home_mod.default_home())
+        self.fs, root_path = fsspec.core.url_to_fs(self.url)
+        self.local = isinstance(self.fs, LocalFileSystem)
+        self.root = os.path.abspath(root_path) if self.local else root_path.rstrip("/")
+        self.cache_dir = Path(cache_dir) if cache_dir else home_mod.local_cache_dir(self.url) / "objects"
+        self.fs.makedirs(self._p("objects"), exist_ok=True)
+
+    # ---------------------------------------------------------------- paths
+    def _p(self, *parts: str) -> str:
+        return posixpath.join(self.root, *parts)
+
+    def object_path(self, artifact_id: str) -> str:
+        return self._p("objects", artifact_id[:2], artifact_id)
+
+    def sidecar_path(self, artifact_id: str) -> str:
+        return self._p("objects", artifact_id[:2], artifact_id + ".json")
+
+    # ---------------------------------------------------------------- low-level writes
+    def _write_stream(self, src: BinaryIO, dst: str) -> tuple[str, int]:
+        """Copy + hash in one pass; fsync locally so the later rename never exposes a partial file."""
+        if self.local:
+            with open(dst, "wb") as out:
+                digest = copy_and_hash(src, out)
+                out.flush()
+                os.fsync(out.fileno())
+            return digest
+        with self.fs.open(dst, "wb") as out:
+            return copy_and_hash(src, out)
+
+    def _write_small(self, dst: str, data: bytes) -> None:
+        """Atomically replace a small file (sidecar, run record): temp name, fsync, rename."""
+        if self.local:
+            os.makedirs(os.path.dirname(dst), exist_ok=True)
+            tmp = f"{dst}.tmp-{uuid.uuid4().hex}"
+            with open(tmp, "wb") as out:
+                out.write(data)
+                out.flush()
+                os.fsync(out.fileno())
+            os.replace(tmp, dst)
+            _fsync_dir(os.path.dirname(dst))
+        else:
+            # One PUT of a whole object is atomic on object stores; there is no rename to lean on.
+            self.fs.pipe_file(dst, data)
+
+    def _stage(self) -> str:
+        tmp = self._p("tmp", uuid.uuid4().hex)
+        self.fs.makedirs(tmp, exist_ok=True)
+        return tmp
+
+    def _discard(self, path: str) -> None:
+        if self.local:
+            shutil.rmtree(path, ignore_errors=True)
+        elif self.fs.exists(path):
+            self.fs.rm(path, recursive=True)
+
+    def _commit_object(self, staged: str, artifact_id: str) -> None:
+        """Move a fully written staging directory to its content address (a no-op if already there)."""
+        final = self.object_path(artifact_id)
+        self.fs.makedirs(posixpath.dirname(final), exist_ok=True)
+        if self.local:
+            try:
+                os.rename(staged, final)
+            except OSError as e:
+                if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                    raise
+                shutil.rmtree(staged, ignore_errors=True)  # same content already committed
+            _fsync_dir(posixpath.dirname(final))
+        elif self.fs.exists(final):
+            self._discard(staged)
+        else:
+            self.fs.mv(staged, final, recursive=True)
+
+    def _stat(self, path: str) -> tuple[int, int | None]:
+        """(size, mtime in ns) of a stored file; the mtime lets reads skip re-hashing unchanged files."""
+        if self.local:
+            st = os.stat(path)
+            return st.st_size, st.st_mtime_ns
+        size = int(self.fs.info(path)["size"])
+        try:
+            modified: datetime = self.fs.modified(path)
+        except (NotImplementedError, OSError):
+            return size, None
+        return size, int(modified.timestamp() * 1_000_000) * 1000
+
+    # ---------------------------------------------------------------- writing artifacts
+    def _resolve_parents(self, parents: Iterable[ParentLike]) -> list[ParentRef]:
+        """Full ids of the parents, checked before any byte is written (UnknownParent otherwise)."""
+        out = []
+        for p in parents:
+            ref = (
+                p
+                if isinstance(p, ParentRef)
+                else ParentRef(id=p[0], role=p[1], attrs=p[2] if len(p) > 2 else {})
+            )
+            try:
+                full = self.resolve(ref.id)
+            except ArtifactNotFound:
+                raise UnknownParent(ref.id) from None
+            out.append(ref.model_copy(update={"id": full}))
+        return out
+
+    def _finish(
+        self,
+        staged: str,
+        artifact_id: str,
+        layout: str,
+        entries: list[tuple[str, int, str]],
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None,
+        parents: list[ParentRef],
+        library_versions: dict[str, str | None] | None,
+        flow_run_id: str | None,
+        task_run_id: str | None,
+    ) -> ArtifactRecord:
+        committed = self.fs.exists(self.sidecar_path(artifact_id))
+        self._commit_object(staged, artifact_id)  # no-op when present; restores a deleted object otherwise
+        if committed:
+            return self.get(artifact_id)  # written before: content addressing makes this idempotent
+        obj = self.object_path(artifact_id)
+        files = []
+        for rel, size, digest in sorted(entries):
+            st_size, mtime = self._stat(posixpath.join(obj, rel))
+            if st_size != size:
+                raise CorruptArtifact(artifact_id, f"{rel} is {st_size} bytes after commit, {size} written")
+            files.append(FileEntry(path=rel, size=size, sha256=digest, mtime_ns=mtime))
+        record = ArtifactRecord(
+            id=artifact_id,
+            kind=kind,
+            name=name,
+            layout=layout,
+            files=files,
+            config=config or {},
+            parents=parents,
+            code_version=code_version(),
+            library_versions=library_versions or {},
+            flow_run_id=flow_run_id,
+            task_run_id=task_run_id,
+        )
+        self._write_small(self.sidecar_path(artifact_id), record.model_dump_json(indent=1).encode())
+        return record
+
+    def put_stream(
+        self,
+        src: BinaryIO,
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None = None,
+        parents: Iterable[ParentLike] = (),
+        *,
+        filename: str,
+        library_versions: dict[str, str | None] | None = None,
+        flow_run_id: str | None = None,
+        task_run_id: str | None = None,
+    ) -> ArtifactRecord:
+        """Store everything readable from `src` as a single-file artifact named `filename` inside it."""
+        filename = safe_relpath(filename)
+        if "/" in filename:
+            raise PathEscape(f"filename {filename!r} must be a plain name")
+        refs = self._resolve_parents(parents)
+        staged = self._stage()
+        try:
+            digest, size = self._write_stream(src, posixpath.join(staged, filename))
+            return self._finish(
+                staged,
+                digest,
+                "file",
+                [(filename, size, digest)],
+                kind,
+                name,
+                config,
+                refs,
+                library_versions,
+                flow_run_id,
+                task_run_id,
+            )
+        finally:
+            if self.fs.exists(staged):
+                self._discard(staged)
+
+    def put_file(
+        self,
+        src_path: str | os.PathLike[str],
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None = None,
+        parents: Iterable[ParentLike] = (),
+        **kw: Any,
+    ) -> ArtifactRecord:
+        """Store a local file; its id equals `sha256sum src_path`."""
+        kw.setdefault("filename", os.path.basename(os.fspath(src_path)))
+        with open(src_path, "rb", buffering=0) as f:
+            return self.put_stream(f, kind, name, config, parents, **kw)
+
+    def put_bytes(
+        self,
+        data: bytes,
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None = None,
+        parents: Iterable[ParentLike] = (),
+        *,
+        filename: str = "data.bin",
+        **kw: Any,
+    ) -> ArtifactRecord:
+        return self.put_stream(io.BytesIO(data), kind, name, config, parents, filename=filename, **kw)
+
+    def put_json(
+        self,
+        obj: Any,
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None = None,
+        parents: Iterable[ParentLike] = (),
+        *,
+        filename: str = "data.json",
+        **kw: Any,
+    ) -> ArtifactRecord:
+        """Store a JSON document (pydantic models by their aliases); keys sorted so equal data has one id."""
+        if isinstance(obj, BaseModel):
+            obj = obj.model_dump(mode="json", by_alias=True)
+        data = json.dumps(obj, sort_keys=True, indent=1, ensure_ascii=False).encode()
+        return self.put_bytes(data, kind, name, config, parents, filename=filename, **kw)
+
+    def put_dir(
+        self,
+        src_dir: str | os.PathLike[str],
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None = None,
+        parents: Iterable[ParentLike] = (),
+        *,
+        library_versions: dict[str, str | None] | None = None,
+        flow_run_id: str | None = None,
+        task_run_id: str | None = None,
+    ) -> ArtifactRecord:
+        """Store a local directory tree (dataset, sharded checkpoint, adapter) as one artifact.
+
+        Symlinked files are stored as their content; symlinked directories are refused because
+        following them could loop or pull in an unbounded tree.
+        """
+        src_dir = os.path.abspath(os.fspath(src_dir))
+        if not os.path.isdir(src_dir):
+            raise NotADirectoryError(src_dir)
+        members = []
+        for dirpath, dirnames, filenames in os.walk(src_dir):
+            for d in dirnames:
+                if os.path.islink(os.path.join(dirpath, d)):
+                    raise ValueError(f"symlinked directory {os.path.join(dirpath, d)} cannot be stored")
+            for fn in filenames:
+                full = os.path.join(dirpath, fn)
+                members.append((safe_relpath(os.path.relpath(full, src_dir).replace(os.sep, "/")), full))
+        if not members:
+            raise ValueError(f"{src_dir} contains no files; an empty artifact is almost certainly a bug")
+        refs = self._resolve_parents(parents)
+        staged = self._stage()
+        try:
+            entries = []
+            for rel, full in sorted(members):
+                dst = posixpath.join(staged, rel)
+                self.fs.makedirs(posixpath.dirname(dst), exist_ok=True)
+                with open(full, "rb", buffering=0) as f:
+                    digest, size = self._write_stream(f, dst)
+                entries.append((rel, size, digest))
+            if self.local:
+                for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _ in members}:
+                    _fsync_dir(d)
+            return self._finish(
+                staged,
+                manifest_id(entries),
+                "dir",
+                entries,
+                kind,
+                name,
+                config,
+                refs,
+                library_versions,
+                flow_run_id,
+                task_run_id,
+            )
+        finally:
+            if self.fs.exists(staged):
+                self._discard(staged)
+
+    # ---------------------------------------------------------------- reading
+    def resolve(self, id_or_prefix: str) -> str:
+        """Full id for an id or a prefix of at least 6 hex characters."""
+        if not isinstance(id_or_prefix, str) or not PREFIX_RE.match(id_or_prefix.lower()):
+            raise MalformedId(f"{id_or_prefix!r} is not an artifact id (6 to 64 hex characters)")
+        prefix = id_or_prefix.lower()
+        if len(prefix) == 64:
+            if self.fs.exists(self.sidecar_path(prefix)):
+                return prefix
+            raise ArtifactNotFound(f"no artifact {prefix}")
+        shard = self._p("objects", prefix[:2])
+        try:
+            names = self.fs.ls(shard, detail=False)
+        except FileNotFoundError:
+            names = []
+        hits = sorted(
+            b[:-5]
+            for b in map(posixpath.basename, names)
+            if b.endswith(".json") and b.startswith(prefix) and len(b) == 69
+        )
+        if not hits:
+            raise ArtifactNotFound(f"no artifact with id prefix {prefix}")
+        if len(hits) > 1:
+            raise AmbiguousId(prefix, hits)
+        return hits[0]
+
+    def _load_sidecar(self, artifact_id: str) -> ArtifactRecord:
+        try:
+            record = ArtifactRecord.model_validate_json(self.fs.cat_file(self.sidecar_path(artifact_id)))
+        except FileNotFoundError:
+            raise ArtifactNotFound(f"no artifact {artifact_id}") from None
+        except PathEscape as e:
+            raise CorruptArtifact(artifact_id, f"sidecar names a path outside the artifact: {e}") from None
+        except ValueError as e:
+            raise CorruptArtifact(artifact_id, f"unreadable sidecar: {e}") from None
+        expected = (
+            record.files[0].sha256
+            if record.layout == "file" and len(record.files) == 1
+            else (manifest_id((f.path, f.size, f.sha256) for f in record.files))
+        )
+        if record.id != artifact_id or expected != artifact_id:
+            raise CorruptArtifact(artifact_id, "sidecar does not describe this id")
+        return record
+
+    def get(self, id_or_prefix: str) -> ArtifactRecord:
+        """The record of a committed artifact (metadata only; use `path` to reach the content)."""
+        return self._load_sidecar(self.resolve(id_or_prefix))
+
+    def exists(self, id_or_prefix: str) -> bool:
+        try:
+            self.resolve(id_or_prefix)
+        except (ArtifactNotFound, AmbiguousId):
+            return False
+        return True
+
+    def _verify(self, record: ArtifactRecord, verify: bool) -> None:
+        """Re-hash a file when asked, or whenever its size or mtime moved since it was recorded."""
+        obj = self.object_path(record.id)
+        refreshed = False
+        for entry in record.files:
+            path = posixpath.join(obj, entry.path)
+            try:
+                size, mtime = self._stat(path)
+            except FileNotFoundError:
+                raise CorruptArtifact(record.id, f"{entry.path} is missing") from None
+            if not verify and size == entry.size and mtime == entry.mtime_ns:
+                continue
+            with self.fs.open(path, "rb") as f:
+                digest, size = hash_stream(f)
+            if size != entry.size or digest != entry.sha256:
+                raise CorruptArtifact(
+                    record.id,
+                    f"{entry.path}: {size} bytes, sha256 {digest[:12]}…, "
+                    f"recorded {entry.size} bytes, sha256 {entry.sha256[:12]}…",
+                )
+            if mtime != entry.mtime_ns:
+                entry.mtime_ns = mtime  # content intact (e.g. touched or copied): stop re-hashing it
+                refreshed = True
+        if refreshed:
+            self._write_small(self.sidecar_path(record.id), record.model_dump_json(indent=1).encode())
+
+    def path(self, id_or_prefix: str, verify: bool = False, member: str | None = None) -> Path:
+        """Local path of a verified artifact: the file, the directory, or one `member` of a directory.
+
+        Remote stores are materialised into the local cache first (downloads are always hashed).
+        """
+        record = self.get(id_or_prefix)
+        if member is not None:
+            member = safe_relpath(member)
+            if member not in {f.path for f in record.files}:
+                raise ArtifactNotFound(f"artifact {record.id} has no member {member!r}")
+        if self.local:
+            self._verify(record, verify)
+            base = Path(self.object_path(record.id))
+        else:
+            base = self._materialize(record, verify)
+        if member is not None:
+            return base / member
+        return base / record.files[0].path if record.layout == "file" else base
+
+    def _materialize(self, record: ArtifactRecord, verify: bool) -> Path:
+        """Download a remote artifact into the cache, hashing as it streams; reuse an intact copy."""
+        final = self.cache_dir / record.id
+        if final.is_dir():
+            intact = all(
+                (final / f.path).is_file() and (final / f.path).stat().st_size == f.size for f in record.files
+            )
+            if intact and verify:
+                intact = all(hash_file(str(final / f.path)) == f.sha256 for f in record.files)
+            if intact:
+                return final
+            shutil.rmtree(final)
+        staged = self.cache_dir / f".tmp-{uuid.uuid4().hex}"
+        try:
+            for f in record.files:
+                dst = staged / f.path
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    src = self.fs.open(posixpath.join(self.object_path(record.id), f.path), "rb")
+                except FileNotFoundError:
+                    raise CorruptArtifact(record.id, f"{f.path} is missing") from None
+                with src, open(dst, "wb") as out:
+                    digest, size = copy_and_hash(src, out)
+                if digest != f.sha256 or size != f.size:
+                    raise CorruptArtifact(record.id, f"{f.path} does not match its recorded sha256/size")
+            try:
+                os.rename(staged, final)
+            except OSError:
+                if not final.is_dir():
+                    raise  # otherwise a concurrent reader put the same verified copy there first
+            return final
+        finally:
+            shutil.rmtree(staged, ignore_errors=True)
+
+    def read_bytes(self, id_or_prefix: str, member: str | None = None) -> bytes:
+        """Bytes of a small file artifact or member, hashed on every read (they are in memory anyway)."""
+        record = self.get(id_or_prefix)
+        rel = safe_relpath(member) if member is not None else record.files[0].path
+        entry = next((f for f in record.files if f.path == rel), None)
+        if entry is None:
+            raise ArtifactNotFound(f"artifact {record.id} has no member {rel!r}")
+        try:
+            data = self.fs.cat_file(posixpath.join(self.object_path(record.id), rel))
+        except FileNotFoundError:
+            raise CorruptArtifact(record.id, f"{rel} is missing") from None
+        digest, size = hash_stream(io.BytesIO(data))
+        if digest != entry.sha256 or size != entry.size:
+            raise CorruptArtifact(record.id, f"{rel} does not match its recorded sha256/size")
+        return data
+
+    def open_json(self, id_or_prefix: str, member: str | None = None) -> Any:
+        return json.loads(self.read_bytes(id_or_prefix, member))
+
+    def iter_ids(self) -> Iterator[str]:
+        """Ids of all committed artifacts (those with a sidecar), in no particular order."""
+        if self.local:
+            objects = self._p("objects")
+            for shard in os.scandir(objects):
+                if shard.is_dir():
+                    for e in os.scandir(shard.path):
+                        if e.name.endswith(".json") and PREFIX_RE.match(e.name[:-5]) and len(e.name) == 69:
+                            yield e.name[:-5]
+            return
+        for p in self.fs.glob(self._p("objects", "*", "*.json")):
+            b = posixpath.basename(p)
+            if len(b) == 69 and PREFIX_RE.match(b[:-5]):
+                yield b[:-5]
+
+    def iter_records(self) -> Iterator[ArtifactRecord]:
+        for artifact_id in self.iter_ids():
+            yield self._load_sidecar(artifact_id)
+
+    # ---------------------------------------------------------------- runs
+    def _run_path(self, flow_run_id: str) -> str:
+        if not RUN_ID_RE.match(flow_run_id):
+            raise PathEscape(f"flow run id {flow_run_id!r} is not a plain name")
+        return self._p("runs", f"{flow_run_id}.json")
+
+    def put_run(self, run: RunRecord) -> None:
+        """Create or update a run record (runs change state, so they are replaced, not content-addressed)."""
+        self.fs.makedirs(self._p("runs"), exist_ok=True)
+        self._write_small(self._run_path(run.flow_run_id), run.model_dump_json(indent=1).encode())
+
+    def iter_runs(self) -> Iterator[RunRecord]:
+        for p in sorted(self.fs.glob(self._p("runs", "*.json"))):
+            yield RunRecord.model_validate_json(self.fs.cat_file(p))
+
+    # ---------------------------------------------------------------- garbage
+    def gc(self, older_than_s: float = 3600.0) -> list[str]:
+        """Remove staging leftovers and uncommitted objects (no sidecar) older than `older_than_s`.
+
+        The age guard keeps gc from deleting a write that another process is committing right now.
+        """
+        cutoff = time.time() - older_than_s
+        removed = []
+        candidates = list(self.fs.ls(self._p("tmp"), detail=False)) if self.fs.exists(self._p("tmp")) else []
+        for shard in self.fs.ls(self._p("objects"), detail=False):
+            for p in self.fs.ls(shard, detail=False):
+                if not p.endswith(".json") and not self.fs.exists(p + ".json"):
+                    candidates.append(p)
+        for p in candidates:
+            if self._age_ts(p) <= cutoff:
+                self._discard(p)
+                removed.append(p)
+        return removed
+
+    def _age_ts(self, path: str) -> float:
+        if self.local:
+            return os.stat(path).st_mtime
+        try:
+            return self.fs.modified(path).timestamp()
+        except (NotImplementedError, OSError, FileNotFoundError):
+            return 0.0  # pseudo-directories on object stores have no time; treat as old
