@@ -1,0 +1,306 @@
+"""Batched policy evaluation on Meta-World v3 with a protocol fingerprint on every result.
+
+All episodes of a batch (tasks x seeds) are stepped together; each re-planning step makes ONE
+`action_fn(obs_batch, task_names) -> (B, K, 4)` call for the still-running episodes, then executes
+the first `execute_steps` actions of each chunk. Success = the environment reports success at any step
+within the horizon; an episode ends at its first success or at the horizon.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from capvector_core.demos import (
+    EVAL_SEED_BASE,
+    TRAIN_SEED_BASE,
+    TRAIN_SEED_SPAN,
+    library_versions,
+)
+from capvector_core.envs import (
+    ACTION_DIM,
+    GOAL_SAMPLING,
+    MAX_HORIZON,
+    EnvConfig,
+    MetaWorldEnv,
+    ObsMode,
+    expert_action,
+    stack_observations,
+)
+from capvector_core.metaworld_tasks import validate_task_names
+
+ActionFn = Callable[[dict[str, np.ndarray], list[str]], np.ndarray]
+Progress = Callable[[int, int], None]
+BENCHMARK = "metaworld-v3"
+
+
+class EvalConfig(BaseModel):
+    """The evaluation protocol (everything but `batch_size` and `record_video` enters the fingerprint)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    tasks: list[str]
+    episodes_per_task: int = Field(20, ge=1)
+    seed_base: int = Field(EVAL_SEED_BASE, ge=0)
+    horizon: int = Field(MAX_HORIZON, ge=1, le=MAX_HORIZON)
+    obs_mode: ObsMode = "state"
+    camera: str = "corner2"
+    image_size: int = Field(64, ge=16, le=256)
+    execute_steps: int = Field(1, ge=1)
+    batch_size: int = Field(64, ge=1)  # environments stepped together (memory: one simulator each)
+    record_video: bool = False
+
+    @field_validator("tasks")
+    @classmethod
+    def _known_tasks(cls, tasks: list[str]) -> list[str]:
+        return validate_task_names(tasks)
+
+    @model_validator(mode="after")
+    def _disjoint_from_training(self) -> EvalConfig:
+        first, last = self.seed_base, self.seed_base + self.episodes_per_task
+        if first < TRAIN_SEED_BASE + TRAIN_SEED_SPAN and last > TRAIN_SEED_BASE:
+            raise ValueError(
+                f"evaluation seeds [{first}, {last}) overlap the demonstration seeds "
+                f"[{TRAIN_SEED_BASE}, {TRAIN_SEED_BASE + TRAIN_SEED_SPAN}); use seed_base >= "
+                f"{TRAIN_SEED_BASE + TRAIN_SEED_SPAN} (validation and test bases are in capvector_core.demos)"
+            )
+        self.env_config(self.tasks[0])  # validates the camera name
+        return self
+
+    @property
+    def seeds(self) -> list[int]:
+        return [self.seed_base + i for i in range(self.episodes_per_task)]
+
+    def env_config(self, task: str) -> EnvConfig:
+        return EnvConfig(
+            task=task,
+            obs_mode=self.obs_mode,
+            camera=self.camera,
+            image_size=self.image_size,
+            horizon=self.horizon,
+        )
+
+
+class EpisodeRecord(BaseModel):
+    task: str
+    seed: int
+    success: bool
+    steps: int  # steps taken: the first success step, or the horizon
+    episode_return: float
+
+
+class EvalResult(BaseModel):
+    config: EvalConfig
+    fingerprint: str
+    protocol: dict
+    versions: dict[str, str]
+    episodes: list[EpisodeRecord]
+    success_rates: dict[str, float]
+    mean_success: float
+    env_steps: int
+    policy_calls: int
+    wall_time_s: float
+    videos: dict[str, str] = {}  # task -> path of its first episode's video
+
+    def to_json(self) -> str:
+        return self.model_dump_json(indent=1)
+
+    @classmethod
+    def from_json(cls, text: str) -> EvalResult:
+        return cls.model_validate_json(text)
+
+
+def protocol_dict(config: EvalConfig) -> dict:
+    """The readable protocol: what must match for two scores to be comparable."""
+    pixels = config.obs_mode == "pixels"
+    return {
+        "benchmark": BENCHMARK,
+        "metaworld": library_versions()["metaworld"],
+        "goal_sampling": GOAL_SAMPLING,
+        "tasks": list(config.tasks),
+        "horizon": config.horizon,
+        "obs_mode": config.obs_mode,
+        "camera": config.camera if pixels else None,
+        "image_size": config.image_size if pixels else None,
+        "episodes_per_task": config.episodes_per_task,
+        "seeds": config.seeds,
+        "execute_steps": config.execute_steps,
+        "success": "info['success'] at any step within the horizon",
+    }
+
+
+def protocol_fingerprint(config: EvalConfig) -> str:
+    """sha256 of the canonical JSON of `protocol_dict(config)`."""
+    canonical = json.dumps(protocol_dict(config), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def expert_action_fn(obs: dict[str, np.ndarray], task_names: list[str]) -> np.ndarray:
+    """Meta-World's scripted experts behind the policy interface: chunks of one action, (B, 1, 4)."""
+    actions = [expert_action(task, state) for task, state in zip(task_names, obs["state"], strict=True)]
+    return np.stack(actions)[:, None, :]
+
+
+class _EnvPool:
+    """Environments reused across batches: building one costs as much as ~200 simulation steps."""
+
+    def __init__(self, config: EvalConfig):
+        self._config = config
+        self._free: dict[str, list[MetaWorldEnv]] = {}
+        self._all: list[MetaWorldEnv] = []
+
+    def take(self, task: str) -> MetaWorldEnv:
+        free = self._free.setdefault(task, [])
+        if free:
+            return free.pop()
+        env = MetaWorldEnv(self._config.env_config(task))
+        self._all.append(env)
+        return env
+
+    def give_back(self, envs: list[MetaWorldEnv]) -> None:
+        for env in envs:
+            self._free[env.task].append(env)
+
+    def close(self) -> None:
+        for env in self._all:
+            env.close()
+
+
+def _checked_actions(actions: object, batch: int, execute_steps: int) -> np.ndarray:
+    """Fail with the expected shape instead of a broadcasting error deep in the simulator."""
+    array = np.asarray(actions, dtype=np.float32)
+    if array.ndim != 3 or array.shape[0] != batch or array.shape[2] != ACTION_DIM:
+        raise ValueError(
+            f"action_fn must return an array of shape (B={batch}, K, {ACTION_DIM}); got shape {array.shape}"
+        )
+    if array.shape[1] < execute_steps:
+        raise ValueError(
+            f"action_fn returned chunks of K={array.shape[1]} actions but execute_steps={execute_steps}"
+        )
+    if not np.all(np.isfinite(array)):
+        raise ValueError("action_fn returned NaN or infinite actions")
+    return array
+
+
+class _Rollout:
+    """One batch of episodes stepped in lockstep, with per-episode bookkeeping."""
+
+    def __init__(self, envs: list[MetaWorldEnv], seeds: list[int], record: list[bool]):
+        self.envs, self.seeds = envs, seeds
+        self.obs = [env.reset(seed) for env, seed in zip(envs, seeds, strict=True)]
+        self.returns = [0.0] * len(envs)
+        self.success = [False] * len(envs)
+        self.frames = {i: [self._frame(i)] for i, rec in enumerate(record) if rec}
+        self.done = [False] * len(envs)
+        self.policy_calls = 0
+
+    def _frame(self, i: int) -> np.ndarray:
+        return self.obs[i]["image"] if "image" in self.obs[i] else self.envs[i].render()
+
+    def run(self, action_fn: ActionFn, execute_steps: int, horizon: int, on_done: Callable[[], None]) -> None:
+        while rows := [i for i, done in enumerate(self.done) if not done]:
+            batch_obs = stack_observations([self.obs[i] for i in rows])
+            chunk = action_fn(batch_obs, [self.envs[i].task for i in rows])
+            self.policy_calls += 1
+            chunk = _checked_actions(chunk, len(rows), execute_steps)
+            for k in range(execute_steps):
+                for row, i in enumerate(rows):
+                    if not self.done[i]:
+                        self._step(i, chunk[row, k], horizon, on_done)
+
+    def _step(self, i: int, action: np.ndarray, horizon: int, on_done: Callable[[], None]) -> None:
+        self.obs[i], reward, success, _ = self.envs[i].step(action)
+        self.returns[i] += reward
+        if i in self.frames:
+            self.frames[i].append(self._frame(i))
+        if success or self.envs[i].steps >= horizon:
+            self.success[i], self.done[i] = success, True
+            on_done()
+
+    def records(self) -> list[EpisodeRecord]:
+        return [
+            EpisodeRecord(task=env.task, seed=seed, success=ok, steps=env.steps, episode_return=ret)
+            for env, seed, ok, ret in zip(self.envs, self.seeds, self.success, self.returns, strict=True)
+        ]
+
+
+def write_gif(frames: list[np.ndarray], path: Path, fps: int = 25) -> Path:
+    """Write uint8 (H, W, 3) frames as a looping GIF (PIL only; no ffmpeg needed)."""
+    from PIL import Image
+
+    images = [Image.fromarray(frame) for frame in frames]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=1000 // fps, loop=0)
+    return path
+
+
+def evaluate(
+    action_fn: ActionFn,
+    config: EvalConfig,
+    progress: Progress | None = None,
+    video_dir: str | Path | None = None,
+) -> EvalResult:
+    """Roll out `action_fn` on every task x seed of `config`; videos need `video_dir`."""
+    if config.record_video and video_dir is None:
+        raise ValueError("record_video=True needs a video_dir to write the videos into")
+    episodes = [(task, seed) for task in config.tasks for seed in config.seeds]
+    records: list[EpisodeRecord] = []
+    videos: dict[str, str] = {}
+    counters = {"done": 0, "policy_calls": 0}
+
+    def on_done() -> None:
+        counters["done"] += 1
+        if progress is not None:
+            progress(counters["done"], len(episodes))
+
+    start = time.perf_counter()
+    pool = _EnvPool(config)
+    try:
+        for first in range(0, len(episodes), config.batch_size):
+            batch = episodes[first : first + config.batch_size]
+            envs = [pool.take(task) for task, _ in batch]
+            record = [config.record_video and seed == config.seed_base for _, seed in batch]
+            rollout = _Rollout(envs, [seed for _, seed in batch], record)
+            rollout.run(action_fn, config.execute_steps, config.horizon, on_done)
+            pool.give_back(envs)
+            records.extend(rollout.records())
+            counters["policy_calls"] += rollout.policy_calls
+            videos.update(_write_videos(rollout, video_dir))
+    finally:
+        pool.close()
+    return _result(config, records, videos, counters["policy_calls"], time.perf_counter() - start)
+
+
+def _write_videos(rollout: _Rollout, video_dir: str | Path | None) -> dict[str, str]:
+    if not rollout.frames or video_dir is None:
+        return {}
+    Path(video_dir).mkdir(parents=True, exist_ok=True)
+    videos = {}
+    for i, frames in rollout.frames.items():
+        task, seed = rollout.envs[i].task, rollout.seeds[i]
+        videos[task] = str(write_gif(frames, Path(video_dir) / f"{task}-seed{seed}.gif"))
+    return videos
+
+
+def _result(
+    config: EvalConfig, records: list[EpisodeRecord], videos: dict[str, str], policy_calls: int, wall: float
+) -> EvalResult:
+    rates = {task: float(np.mean([r.success for r in records if r.task == task])) for task in config.tasks}
+    return EvalResult(
+        config=config,
+        fingerprint=protocol_fingerprint(config),
+        protocol=protocol_dict(config),
+        versions=library_versions(),
+        episodes=records,
+        success_rates=rates,
+        mean_success=float(np.mean(list(rates.values()))),
+        env_steps=sum(r.steps for r in records),
+        policy_calls=policy_calls,
+        wall_time_s=wall,
+        videos=videos,
+    )
