@@ -1,0 +1,186 @@
+"""Auxiliary training objectives, used only during training (heads are dropped afterwards).
+
+Each objective is an ``nn.Module`` holding its own head parameters, separate from the policy, so
+θ_ao (SFT + aux) and θ_ft (plain SFT) have identical keys and a capability vector is well defined.
+An objective declares the dataset fields it needs (``required_fields``) and, if it looks ahead in
+time, its ``horizon``; the trainer supplies ``batch["privileged_future"]`` for that horizon.
+
+- ``spatial`` — the Spatial Forcing analogue. Hidden states of an intermediate layer at the vision
+  tokens (state tokens in ``state`` mode) go through LayerNorm -> Linear -> GELU -> Linear and are
+  aligned by cosine similarity with fixed 3D scene features: the privileged object/goal/hand xyz,
+  standardized with dataset statistics and embedded by a fixed random Fourier feature map
+  ``[sin(Wx), cos(Wx)]`` (W ~ N(0, scale²), seeded, never trained — a frozen "3D encoder" in the role
+  VGGT plays in the paper, so the target cannot collapse). ``pooling="mean"`` aligns the mean token;
+  ``pooling="token"`` aligns every token with the scene feature plus a fixed sinusoidal embedding of
+  its position (the paper's f + E). Loss = 1 − mean cosine.
+- ``dynamics`` — an MLP on the mean-pooled final backbone state predicts the standardized privileged
+  state ``horizon`` steps ahead in the same episode (clamped at the episode's end); loss = MSE.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+
+from capvector_core.policy import PolicyConfig
+
+_REGISTRY: dict[str, type[AuxObjective]] = {}
+
+
+def register_objective(name: str) -> Callable[[type[AuxObjective]], type[AuxObjective]]:
+    def deco(cls: type[AuxObjective]) -> type[AuxObjective]:
+        if name in _REGISTRY:
+            raise ValueError(f"auxiliary objective {name!r} is already registered")
+        cls.name = name
+        _REGISTRY[name] = cls
+        return cls
+
+    return deco
+
+
+def get_objective(name: str) -> type[AuxObjective]:
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown auxiliary objective {name!r}; known: {sorted(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+def known_objectives() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def build_objective(name: str, policy_config: PolicyConfig, params: Mapping | None = None) -> AuxObjective:
+    """Instantiate a registered objective; params are validated by its own pydantic Params model."""
+    cls = get_objective(name)
+    return cls(policy_config, cls.Params.model_validate(dict(params or {})))
+
+
+class AuxObjective(nn.Module):
+    name = ""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+
+    def __init__(self, policy_config: PolicyConfig, params: BaseModel):
+        super().__init__()
+        self.policy_config = policy_config
+        self.params = params
+        self.register_buffer("privileged_mean", torch.zeros(9))
+        self.register_buffer("privileged_std", torch.ones(9))
+
+    @property
+    def horizon(self) -> int | None:
+        """Steps ahead the objective needs privileged state for (None: only the current step)."""
+        return None
+
+    def required_fields(self) -> list[str]:
+        raise NotImplementedError
+
+    def fit(self, tensors: Mapping[str, torch.Tensor]) -> None:
+        """Take standardization statistics of the privileged state from the training data."""
+        priv = tensors["privileged"].double()
+        self.privileged_mean.copy_(priv.mean(0).float())
+        self.privileged_std.copy_(priv.std(0, unbiased=False).clamp_min(1e-2).float())
+
+    def standardize(self, privileged: torch.Tensor) -> torch.Tensor:
+        return (privileged - self.privileged_mean) / self.privileged_std
+
+    def forward(self, policy_out: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        raise NotImplementedError
+
+
+def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.LayerNorm(d_in), nn.Linear(d_in, hidden), nn.GELU(), nn.Linear(hidden, d_out))
+
+
+def _resolve_layer(layer: int, n_layers: int, field: str) -> int:
+    idx = layer if layer >= 0 else n_layers + layer
+    if not 0 <= idx < n_layers:
+        raise ValueError(f"{field}={layer} is out of range for a policy with n_layers={n_layers}")
+    return idx
+
+
+@register_objective("spatial")
+class SpatialObjective(AuxObjective):
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        layer: int | None = Field(
+            None, description="hidden layer index (negative from the end); default 3/4 depth"
+        )
+        pooling: Literal["mean", "token"] = "token"
+        hidden_dim: int = Field(256, gt=0)
+        feature_dim: int = Field(128, gt=0, description="random Fourier feature size (even)")
+        fourier_scale: float = Field(1.0, gt=0)
+        seed: int = 0
+
+    def __init__(self, policy_config: PolicyConfig, params: Params):
+        super().__init__(policy_config, params)
+        if params.feature_dim % 2:
+            raise ValueError(f"spatial feature_dim must be even, got {params.feature_dim}")
+        n = policy_config.n_layers
+        default = max(0, math.ceil(0.75 * n) - 1)
+        self.layer = _resolve_layer(default if params.layer is None else params.layer, n, "spatial layer")
+        self.head = _mlp(policy_config.d_model, params.hidden_dim, params.feature_dim)
+        gen = torch.Generator().manual_seed(params.seed)
+        self.register_buffer(
+            "fourier", torch.randn(9, params.feature_dim // 2, generator=gen) * params.fourier_scale
+        )
+        self.register_buffer("token_pos", _sinusoid(policy_config.n_obs_tokens, params.feature_dim))
+
+    def required_fields(self) -> list[str]:
+        return ["privileged", "image"] if self.policy_config.obs_mode == "pixels" else ["privileged"]
+
+    def target(self, privileged: torch.Tensor) -> torch.Tensor:
+        z = self.standardize(privileged) @ self.fourier
+        return torch.cat([z.sin(), z.cos()], dim=-1)
+
+    def forward(self, policy_out: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        slices = policy_out["token_slices"]
+        obs = slices["vision"] if "vision" in slices else slices["state"]
+        tokens = policy_out["hidden"][self.layer][:, obs]
+        target = self.target(batch["privileged"])
+        if self.params.pooling == "mean":
+            pred = self.head(tokens.mean(1))
+        else:
+            pred = self.head(tokens)
+            target = target[:, None, :] + self.token_pos
+        return 1.0 - F.cosine_similarity(pred, target, dim=-1).mean()
+
+
+def _sinusoid(n: int, dim: int) -> torch.Tensor:
+    pos = torch.arange(n, dtype=torch.float32)[:, None]
+    freq = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32) * (-math.log(1e4) / dim))
+    table = torch.zeros(n, dim)
+    table[:, 0::2] = torch.sin(pos * freq)
+    table[:, 1::2] = torch.cos(pos * freq)
+    return table * 0.1  # SF scales its positional term by 0.1 so the scene feature dominates
+
+
+@register_objective("dynamics")
+class DynamicsObjective(AuxObjective):
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        horizon: int = Field(5, gt=0, description="steps ahead, within the episode")
+        layer: int = Field(-1, description="hidden layer index (negative from the end)")
+        hidden_dim: int = Field(256, gt=0)
+
+    def __init__(self, policy_config: PolicyConfig, params: Params):
+        super().__init__(policy_config, params)
+        self.layer = _resolve_layer(params.layer, policy_config.n_layers, "dynamics layer")
+        self.head = _mlp(policy_config.d_model, params.hidden_dim, 9)
+
+    @property
+    def horizon(self) -> int:
+        return self.params.horizon
+
+    def required_fields(self) -> list[str]:
+        return ["privileged"]
+
+    def forward(self, policy_out: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        pooled = policy_out["hidden"][self.layer].mean(1)
+        return F.mse_loss(self.head(pooled), self.standardize(batch["privileged_future"]))

@@ -1,0 +1,480 @@
+"""Supervised training of a VLAPolicy: SFT, SFT + auxiliary objective, plus an extra-loss hook.
+
+Exact resume: every checkpoint holds the policy and aux-head weights (safetensors), the optimizer
+state, the batch-sampling generator and torch RNG states, and the step. The learning rate is a pure
+function of the step (linear warm-up then cosine to ``min_lr_ratio``), so it needs no state of its own.
+``train`` resumes from the newest complete checkpoint in ``run_dir``; a run killed at any point and
+rerun ends with the same weights, bit for bit, as an uninterrupted one with the same seed.
+
+Layout of ``run_dir``::
+
+    checkpoints/step_XXXXXXXX/{policy.safetensors, aux.safetensors, trainer_state.pt, train_config.json}
+    loss_curve.jsonl      one row per log interval: step, mean loss terms, lr, grad_norm, time
+    policy.safetensors    final policy weights (config in metadata)
+    aux_heads.safetensors final auxiliary heads (only with an aux objective)
+    result.json           TrainResult
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import time
+from collections.abc import Callable, Mapping
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from capvector_core import tokenizer
+from capvector_core.aux_objectives import AuxObjective, build_objective, get_objective
+from capvector_core.device import resolve_device
+from capvector_core.policy import VLAPolicy, load_policy_weights, save_policy
+
+ExtraLoss = Callable[[nn.Module], torch.Tensor]
+_CKPT = re.compile(r"^step_(\d{8})$")
+# Fields that change neither the batches nor the arithmetic: allowed to differ on resume.
+_RESUME_FREE = {"checkpoint_every", "log_every", "num_threads", "device", "keep_checkpoints"}
+
+
+class AuxConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    weight: float = Field(0.5, ge=0.0, description="loss weight (Spatial Forcing's default is 0.5)")
+    params: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("name")
+    @classmethod
+    def _known(cls, value: str) -> str:
+        get_objective(value)
+        return value
+
+
+class TrainConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    steps: int = Field(1000, gt=0)
+    batch_size: int = Field(64, gt=0)
+    lr: float = Field(3e-4, gt=0)
+    weight_decay: float = Field(0.01, ge=0)
+    warmup_steps: int = Field(100, ge=0)
+    min_lr_ratio: float = Field(0.1, ge=0, le=1)
+    grad_clip: float | None = Field(1.0, gt=0)
+    seed: int = 0
+    checkpoint_every: int = Field(500, gt=0)
+    keep_checkpoints: int = Field(2, gt=0)
+    log_every: int = Field(10, gt=0)
+    aux: AuxConfig | None = None
+    fit_normalizer: bool | None = Field(
+        None,
+        description="set policy normalization stats from the data; None: only if the policy has none yet",
+    )
+    device: str = "auto"
+    num_threads: int | None = Field(None, gt=0)
+
+    @model_validator(mode="after")
+    def _warmup(self) -> TrainConfig:
+        if self.warmup_steps >= self.steps:
+            raise ValueError(f"warmup_steps ({self.warmup_steps}) must be < steps ({self.steps})")
+        return self
+
+
+class TrainResult(BaseModel):
+    weights_path: Path
+    aux_weights_path: Path | None
+    loss_curve_path: Path
+    steps: int
+    resumed_from_step: int
+    steps_per_s: float
+    samples_per_s: float
+    final_loss: float
+
+
+def lr_at(step: int, config: TrainConfig) -> float:
+    """Learning rate for 0-based step: linear warm-up, then cosine decay to lr * min_lr_ratio."""
+    if step < config.warmup_steps:
+        return config.lr * (step + 1) / config.warmup_steps
+    progress = (step - config.warmup_steps) / max(1, config.steps - config.warmup_steps)
+    cosine = 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+    return config.lr * (config.min_lr_ratio + (1.0 - config.min_lr_ratio) * cosine)
+
+
+def _instructions(meta: Any) -> list[str]:
+    tasks = list(meta.tasks)
+    instr = meta.instructions
+    if isinstance(instr, Mapping):
+        missing = [t for t in tasks if t not in instr]
+        if missing:
+            raise ValueError(f"dataset meta has no instruction for task(s) {missing}")
+        return [instr[t] for t in tasks]
+    if len(instr) != len(tasks):
+        raise ValueError(f"dataset meta has {len(instr)} instructions for {len(tasks)} tasks")
+    return list(instr)
+
+
+class SampleTable:
+    """Per-sample index tables, built once: the action chunk rows (N,K) and the future row (N,).
+
+    Chunks never cross an episode end: past it, the episode's last action repeats.
+    """
+
+    def __init__(self, tensors: Mapping[str, torch.Tensor], chunk_size: int, horizon: int | None):
+        episode, step = tensors["episode"].cpu(), tensors["step"].cpu()
+        n = episode.shape[0]
+        new_episode = torch.ones(n, dtype=torch.bool)
+        new_episode[1:] = episode[1:] != episode[:-1]
+        bad = (~new_episode[1:]) & (step[1:] != step[:-1] + 1)
+        if bad.any():
+            i = int(bad.nonzero()[0]) + 1
+            raise ValueError(
+                f"dataset rows must be grouped by episode in step order; row {i} (episode {int(episode[i])}, "
+                f"step {int(step[i])}) does not follow row {i - 1} (step {int(step[i - 1])})"
+            )
+        run = torch.cumsum(new_episode.long(), 0) - 1
+        starts = new_episode.nonzero().squeeze(1)
+        ends = torch.cat([starts[1:] - 1, torch.tensor([n - 1])])
+        last = ends[run]
+        rows = torch.arange(n)
+        self.chunk = torch.minimum(rows[:, None] + torch.arange(chunk_size)[None, :], last[:, None])
+        self.future = torch.minimum(rows + horizon, last) if horizon else None
+
+
+def _check_dataset(dataset: Any, policy: VLAPolicy, objective: AuxObjective | None, batch_size: int) -> None:
+    tensors = dataset.tensors
+    obs_key = "image" if policy.config.obs_mode == "pixels" else "state"
+    needed = [obs_key, "proprio", "action", "episode", "step", "task"]
+    missing = [k for k in needed if k not in tensors]
+    if missing:
+        raise ValueError(
+            f"dataset lacks field(s) {missing} needed to train a {policy.config.obs_mode}-mode policy "
+            f"(has: {sorted(tensors)})"
+        )
+    if objective is not None:
+        missing = [k for k in objective.required_fields() if k not in tensors]
+        if missing:
+            raise ValueError(
+                f"auxiliary objective {objective.name!r} needs dataset field(s) {missing}, "
+                f"which this dataset lacks (has: {sorted(tensors)})"
+            )
+    n = tensors["action"].shape[0]
+    if batch_size > n:
+        raise ValueError(f"batch_size ({batch_size}) is larger than the dataset ({n} samples)")
+    if obs_key == "image":
+        size = policy.config.image_size
+        if tuple(tensors["image"].shape[1:]) != (size, size, 3):
+            raise ValueError(
+                f"dataset images are {tuple(tensors['image'].shape[1:])}, "
+                f"the policy expects ({size}, {size}, 3)"
+            )
+
+
+def _stats(tensors: Mapping[str, torch.Tensor]) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    out = {}
+    for key in ("state", "proprio", "action"):
+        x = tensors[key].double()
+        # Constant dimensions (e.g. an absent second object) get std 1e-2, not ~0: a shift at test
+        # time must not blow up.
+        out[key] = (x.mean(0).float(), x.std(0, unbiased=False).clamp_min(1e-2).float())
+    return out
+
+
+def _checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
+    root = run_dir / "checkpoints"
+    if not root.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in root.iterdir() if (m := _CKPT.match(p.name)) and p.is_dir()]
+    return sorted(found)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class _Run:
+    """State of one training invocation (kept together so checkpointing sees all of it)."""
+
+    def __init__(self, policy, objective, optimizer, generator, config, run_dir, device):
+        self.policy, self.objective, self.optimizer = policy, objective, optimizer
+        self.generator, self.config, self.run_dir, self.device = generator, config, run_dir, device
+        self.step = 0
+        self.train_seconds = 0.0
+
+    def save(self) -> None:
+        root = self.run_dir / "checkpoints"
+        root.mkdir(parents=True, exist_ok=True)
+        final = root / f"step_{self.step:08d}"
+        if final.exists():
+            return
+        tmp = root / f".tmp-step_{self.step:08d}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        save_policy(self.policy, tmp / "policy.safetensors")
+        if self.objective is not None:
+            save_file(_cpu_state(self.objective), str(tmp / "aux.safetensors"))
+        state = {
+            "step": self.step,
+            "train_seconds": self.train_seconds,
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        }
+        torch.save(state, tmp / "trainer_state.pt")
+        (tmp / "train_config.json").write_text(self.config.model_dump_json(indent=1))
+        for f in tmp.iterdir():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        os.replace(tmp, final)
+        _fsync_dir(root)
+        for _, old in _checkpoints(self.run_dir)[: -self.config.keep_checkpoints]:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def load(self, path: Path) -> None:
+        saved = TrainConfig.model_validate_json((path / "train_config.json").read_text())
+        ours, theirs = self.config.model_dump(), saved.model_dump()
+        diff = sorted(k for k in ours if k not in _RESUME_FREE and ours[k] != theirs.get(k))
+        if diff:
+            raise ValueError(
+                f"cannot resume from {path}: its TrainConfig differs in {diff} "
+                f"(checkpoint {[theirs.get(k) for k in diff]}, now {[ours[k] for k in diff]}); "
+                "use a new run_dir for a different configuration"
+            )
+        load_policy_weights(self.policy, path / "policy.safetensors")
+        if self.objective is not None:
+            self.objective.load_state_dict(load_file(str(path / "aux.safetensors")), strict=True)
+        state = torch.load(path / "trainer_state.pt", weights_only=True, map_location="cpu")
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        if state["cuda_rng"] and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda_rng"])
+        self.step = int(state["step"])
+        self.train_seconds = float(state["train_seconds"])
+
+
+def _cpu_state(module: nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().to("cpu").contiguous() for k, v in module.state_dict().items()}
+
+
+def _param_groups(params: list[nn.Parameter], weight_decay: float) -> list[dict]:
+    """Decay matrices only; biases, norms' gains and other vectors are not decayed."""
+    decay = [p for p in params if p.ndim >= 2]
+    rest = [p for p in params if p.ndim < 2]
+    return [{"params": decay, "weight_decay": weight_decay}, {"params": rest, "weight_decay": 0.0}]
+
+
+def _progress(enabled: bool, total: int, start: int):
+    if not enabled:
+        return nullcontext(None)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    bar = Progress(
+        TextColumn("train"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[loss]}"),
+        TimeRemainingColumn(),
+    )
+    bar.add_task("train", total=total, completed=start, loss="")
+    return bar
+
+
+def train(
+    policy: VLAPolicy,
+    dataset: Any,
+    config: TrainConfig,
+    run_dir: str | Path,
+    extra_losses: Mapping[str, ExtraLoss] | None = None,
+    progress: bool = True,
+) -> TrainResult:
+    """Train ``policy`` in place on ``dataset`` (a DemoDataset: ``.tensors``, ``.meta.tasks/.instructions``).
+
+    ``extra_losses``: name -> callable(policy) returning an already-weighted scalar, added to the loss
+    and logged under its name every step (the orthogonal regularizer and LoRA-SP plug in here).
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    extra_losses = dict(extra_losses or {})
+    if config.num_threads:
+        torch.set_num_threads(config.num_threads)
+    device = resolve_device(config.device)
+    torch.manual_seed(config.seed)
+
+    objective = None
+    if config.aux is not None:
+        objective = build_objective(config.aux.name, policy.config, config.aux.params)
+    reserved = {"loss", "action"} | ({objective.name} if objective else set())
+    clash = sorted(reserved & set(extra_losses))
+    if clash:
+        raise ValueError(f"extra loss name(s) {clash} collide with built-in loss terms {sorted(reserved)}")
+    _check_dataset(dataset, policy, objective, config.batch_size)
+
+    tensors = dataset.tensors
+    if config.fit_normalizer or (config.fit_normalizer is None and not bool(policy.normalizer.fitted)):
+        policy.normalizer.set_stats(_stats(tensors))
+    if objective is not None:
+        objective.fit(tensors)
+
+    cfg = policy.config
+    table = SampleTable(tensors, cfg.chunk_size, objective.horizon if objective else None)
+    task_tokens = tokenizer.encode_batch(
+        _instructions(dataset.meta), cfg.vocab_size, cfg.max_instruction_tokens
+    )
+    obs_key = "image" if cfg.obs_mode == "pixels" else "state"
+    keys = [obs_key, "proprio", "action", "task"] + (
+        ["privileged"] if "privileged" in tensors and objective else []
+    )
+    data = {k: tensors[k].to(device) for k in keys}
+    task_tokens = task_tokens.to(device)
+    chunk_rows = table.chunk.to(device)
+    future_rows = table.future.to(device) if table.future is not None else None
+    n = data["action"].shape[0]
+
+    policy.to(device).train()
+    params = [p for p in policy.parameters() if p.requires_grad]
+    if objective is not None:
+        objective.to(device).train()
+        params += list(objective.parameters())
+    optimizer = torch.optim.AdamW(_param_groups(params, config.weight_decay), lr=config.lr)
+    generator = torch.Generator().manual_seed(config.seed)
+    run = _Run(policy, objective, optimizer, generator, config, run_dir, device)
+
+    checkpoints = _checkpoints(run_dir)
+    if checkpoints:
+        run.load(checkpoints[-1][1])
+    start = run.step
+    curve_path = run_dir / "loss_curve.jsonl"
+    _truncate_curve(curve_path, start)
+
+    def sample() -> dict[str, torch.Tensor]:
+        idx = torch.randint(n, (config.batch_size,), generator=generator).to(device)
+        batch = {
+            "tokens": task_tokens[data["task"][idx]],
+            obs_key: data[obs_key][idx],
+            "proprio": data["proprio"][idx],
+            "actions": data["action"][chunk_rows[idx]],
+        }
+        if "privileged" in data:
+            batch["privileged"] = data["privileged"][idx]
+            if future_rows is not None:
+                batch["privileged_future"] = data["privileged"][future_rows[idx]]
+        return batch
+
+    names = ["loss", "action"] + ([objective.name] if objective else []) + list(extra_losses) + ["grad_norm"]
+    window = torch.zeros(len(names), dtype=torch.float64, device=device)
+    window_count = 0
+    last_loss = float("nan")
+    t_start = time.perf_counter()
+    t_segment = t_start
+    with _progress(progress, config.steps, start) as bar, open(curve_path, "a") as curve:
+        while run.step < config.steps:
+            step = run.step
+            lr = lr_at(step, config)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            batch = sample()
+            out = policy(batch)
+            terms = {"action": policy.action_loss(out["actions"], batch["actions"])}
+            if objective is not None:
+                terms[objective.name] = config.aux.weight * objective(out, batch)
+            for name, fn in extra_losses.items():
+                terms[name] = fn(policy)
+            total = torch.stack(list(terms.values())).sum()
+            values = torch.stack([total.detach(), *(t.detach() for t in terms.values())])
+            if not bool(torch.isfinite(values).all()):
+                bad = [
+                    k for k, v in zip(["loss", *terms], values.tolist(), strict=True) if not math.isfinite(v)
+                ]
+                raise FloatingPointError(
+                    f"non-finite loss at step {step}: term(s) {bad} (values {values.tolist()})"
+                )
+            optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            if config.grad_clip is not None:
+                grad_norm = torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
+            else:
+                grad_norm = torch.linalg.vector_norm(
+                    torch.stack([p.grad.norm() for p in params if p.grad is not None])
+                )
+            optimizer.step()
+            window += torch.cat([values, grad_norm.detach().reshape(1)]).double()
+            window_count += 1
+            run.step += 1
+            done = run.step == config.steps
+            if run.step % config.log_every == 0 or done:
+                now = time.perf_counter()
+                run.train_seconds += now - t_segment
+                t_segment = now
+                means = (window / window_count).tolist()
+                row = {"step": run.step, "lr": lr, "time": round(run.train_seconds, 4)}
+                row.update(dict(zip(names, means, strict=True)))
+                curve.write(json.dumps(row) + "\n")
+                curve.flush()
+                last_loss = means[0]
+                window.zero_()
+                window_count = 0
+                if bar is not None:
+                    bar.update(bar.task_ids[0], completed=run.step, loss=f"loss {last_loss:.4f}")
+            if run.step % config.checkpoint_every == 0 or done:
+                run.train_seconds += time.perf_counter() - t_segment
+                curve.flush()
+                os.fsync(curve.fileno())
+                run.save()
+                t_segment = time.perf_counter()
+    elapsed = time.perf_counter() - t_start
+    done_steps = config.steps - start
+
+    meta = {"capvector.train_config": config.model_dump_json(), "capvector.steps": str(config.steps)}
+    weights = save_policy(policy, run_dir / "policy.safetensors", metadata=meta)
+    aux_path = None
+    if objective is not None:
+        aux_path = run_dir / "aux_heads.safetensors"
+        save_file(
+            _cpu_state(objective), str(aux_path), metadata={"capvector.aux": config.aux.model_dump_json()}
+        )
+    if math.isnan(last_loss):
+        last_loss = _last_logged_loss(curve_path)
+    result = TrainResult(
+        weights_path=weights,
+        aux_weights_path=aux_path,
+        loss_curve_path=curve_path,
+        steps=config.steps,
+        resumed_from_step=start,
+        steps_per_s=done_steps / elapsed if done_steps and elapsed > 0 else 0.0,
+        samples_per_s=done_steps * config.batch_size / elapsed if done_steps and elapsed > 0 else 0.0,
+        final_loss=last_loss,
+    )
+    (run_dir / "result.json").write_text(result.model_dump_json(indent=1))
+    return result
+
+
+def _truncate_curve(path: Path, step: int) -> None:
+    """Drop rows logged after the checkpoint we resume from (a killed run may have logged past it)."""
+    if not path.exists():
+        return
+    keep = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:  # a line cut short by the kill
+            continue
+        if row["step"] <= step:
+            keep.append(line)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text("".join(line + "\n" for line in keep))
+    os.replace(tmp, path)
+
+
+def _last_logged_loss(path: Path) -> float:
+    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    return json.loads(lines[-1])["loss"] if lines else float("nan")

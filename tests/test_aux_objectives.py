@@ -1,0 +1,87 @@
+"""Auxiliary objectives: registry, finite losses, grads only where expected, heads kept out of the policy."""
+
+import pytest
+import torch
+
+from capvector_core.aux_objectives import build_objective, get_objective, known_objectives, register_objective
+from capvector_core.policy import PolicyConfig, VLAPolicy
+from capvector_core.tokenizer import encode_batch
+
+TINY = dict(d_model=32, n_layers=4, n_heads=4, chunk_size=3, vocab_size=64, max_instruction_tokens=6)
+
+
+def batch(config, b=6):
+    return {
+        "tokens": encode_batch(["push the puck"] * b, config.vocab_size, config.max_instruction_tokens),
+        "state": torch.randn(b, 39),
+        "proprio": torch.randn(b, 4),
+        "image": torch.randint(0, 256, (b, config.image_size, config.image_size, 3), dtype=torch.uint8),
+        "privileged": torch.randn(b, 9),
+        "privileged_future": torch.randn(b, 9),
+    }
+
+
+def test_registry():
+    assert {"spatial", "dynamics"} <= set(known_objectives())
+    with pytest.raises(
+        ValueError, match=r"unknown auxiliary objective 'nope'; known: \[.*'dynamics'.*'spatial'"
+    ):
+        get_objective("nope")
+    with pytest.raises(ValueError, match="already registered"):
+        register_objective("spatial")(get_objective("spatial"))
+    with pytest.raises(ValueError, match="n_layers=4"):
+        build_objective("spatial", PolicyConfig(**TINY), {"layer": 7})
+    with pytest.raises(ValueError, match="extra"):
+        build_objective("dynamics", PolicyConfig(**TINY), {"horizn": 3})
+
+
+@pytest.mark.parametrize(
+    "mode,name,params",
+    [
+        ("state", "spatial", {"pooling": "token"}),
+        ("state", "spatial", {"pooling": "mean", "layer": 1}),
+        ("pixels", "spatial", {}),
+        ("state", "dynamics", {"horizon": 2}),
+    ],
+)
+def test_loss_finite_grads_where_expected_and_heads_separate(mode, name, params):
+    config = PolicyConfig(obs_mode=mode, image_size=16, stem_channels=[8, 8], **TINY)
+    policy = VLAPolicy(config)
+    keys_before = set(policy.state_dict())
+    objective = build_objective(name, config, params)
+    b = batch(config)
+    objective.fit({"privileged": torch.randn(50, 9) * 3 + 1})
+    loss = objective(policy(b), b)
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    loss.backward()
+    assert set(policy.state_dict()) == keys_before  # heads are not policy weights
+    assert all(p.grad is not None for p in objective.head.parameters())
+    assert not any(p.requires_grad for p in objective.buffers())
+    grads = {k: p.grad for k, p in policy.named_parameters()}
+    # never reaches the action head; spatial at layer L leaves later layers untouched
+    assert grads["action_head.proj.weight"] is None
+    if name == "spatial":
+        layer = objective.layer
+        assert grads[f"backbone.layers.{layer}.mlp.fc2.weight"] is not None
+        if layer + 1 < config.n_layers:
+            assert grads[f"backbone.layers.{layer + 1}.attn.q_proj.weight"] is None
+        obs = "vision.stem.0.weight" if mode == "pixels" else "state.proj.obj1.weight"
+        assert grads[obs].abs().sum() > 0
+    if name == "dynamics":
+        assert objective.horizon == 2 and objective.required_fields() == ["privileged"]
+
+
+def test_spatial_required_fields_and_default_layer():
+    assert build_objective("spatial", PolicyConfig(**TINY)).required_fields() == ["privileged"]
+    pix = PolicyConfig(obs_mode="pixels", image_size=16, stem_channels=[8, 8], **TINY)
+    spatial = build_objective("spatial", pix)
+    assert spatial.required_fields() == ["privileged", "image"]
+    assert spatial.layer == 2  # 3/4 depth of 4 layers (SF: an intermediate, fairly deep layer)
+
+
+def test_spatial_target_is_fixed():
+    config = PolicyConfig(**TINY)
+    a, b = build_objective("spatial", config), build_objective("spatial", config)
+    x = torch.randn(4, 9)
+    assert torch.equal(a.target(x), b.target(x))
+    assert not any("fourier" in n for n, _ in a.named_parameters())

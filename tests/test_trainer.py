@@ -1,0 +1,214 @@
+"""Trainer: learning, validation errors, NaN, extra-loss hook, pixels path, exact resume after SIGKILL."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from capvector_core.demos import DatasetMeta, DemoDataset
+from capvector_core.policy import PolicyConfig, VLAPolicy, load_policy
+from capvector_core.trainer import AuxConfig, SampleTable, TrainConfig, lr_at, train
+
+TINY = dict(d_model=32, n_layers=2, n_heads=4, chunk_size=4, vocab_size=64, max_instruction_tokens=6)
+REPO = Path(__file__).resolve().parents[1]
+
+
+def make_dataset(obs_mode="state", episodes=4, length=20, image_size=16, privileged=True, seed=0):
+    """A contract-shaped DemoDataset whose actions are a smooth function of the state (learnable)."""
+    g = torch.Generator().manual_seed(seed)
+    n = episodes * length
+    state = torch.randn(n, 39, generator=g)
+    tensors = {
+        "state": state,
+        "proprio": state[:, :4].clone(),
+        "action": torch.tanh(state[:, :4] + 0.5 * state[:, 35:39]),
+        "episode": torch.arange(episodes).repeat_interleave(length),
+        "step": torch.arange(length).repeat(episodes),
+        "task": (torch.arange(episodes) % 2).repeat_interleave(length),
+    }
+    if privileged:
+        tensors["privileged"] = state[:, 4:13].clone()
+    if obs_mode == "pixels":
+        tensors["image"] = torch.randint(
+            0, 256, (n, image_size, image_size, 3), generator=g, dtype=torch.uint8
+        )
+    tasks = ["reach-v3", "push-v3"]
+    meta = DatasetMeta(
+        tasks=tasks,
+        instructions=["reach to the goal", "push the puck to the goal"],
+        obs_mode=obs_mode,
+        camera="corner2",
+        image_size=image_size,
+        horizon=length,
+        episodes_per_task=episodes // 2,
+        seed_offset=0,
+        seeds={t: list(range(episodes // 2)) for t in tasks},
+        failures={t: 0 for t in tasks},
+        n_episodes=episodes,
+        n_steps=n,
+    )
+    return DemoDataset.create(tensors, meta)
+
+
+def quick(**kw) -> TrainConfig:
+    base = dict(
+        steps=30, batch_size=16, lr=3e-3, warmup_steps=5, checkpoint_every=1000, log_every=5, device="cpu"
+    )
+    return TrainConfig(**{**base, **kw})
+
+
+def curve(path) -> list[dict]:
+    return [json.loads(line) for line in Path(path).read_text().splitlines()]
+
+
+def test_loss_decreases_and_outputs_written(tmp_path):
+    torch.manual_seed(0)
+    policy = VLAPolicy(PolicyConfig(**TINY))
+    result = train(policy, make_dataset(), quick(steps=120), tmp_path, progress=False)
+    rows = curve(result.loss_curve_path)
+    assert rows[-1]["step"] == 120 and {"loss", "action", "lr", "time", "grad_norm"} <= set(rows[0])
+    assert rows[-1]["loss"] < 0.6 * rows[0]["loss"]
+    loaded = load_policy(result.weights_path, device="cpu")
+    assert bool(loaded.normalizer.fitted)
+    for k, v in policy.state_dict().items():
+        assert torch.equal(v, loaded.state_dict()[k])
+    assert result.samples_per_s > 0
+
+
+def test_sample_table_stays_within_episode():
+    ds = make_dataset(episodes=2, length=5)
+    table = SampleTable(ds.tensors, chunk_size=3, horizon=2)
+    assert table.chunk[3].tolist() == [3, 4, 4]  # last action of episode 0 repeats
+    assert table.chunk[5].tolist() == [5, 6, 7]
+    assert table.future[4].item() == 4 and table.future[5].item() == 7
+    shuffled = {**ds.tensors, "step": ds.tensors["step"].flip(0)}
+    with pytest.raises(ValueError, match="grouped by episode"):
+        SampleTable(shuffled, 3, None)
+
+
+def test_lr_schedule():
+    cfg = TrainConfig(steps=100, lr=1.0, warmup_steps=10, min_lr_ratio=0.1)
+    assert lr_at(0, cfg) == pytest.approx(0.1) and lr_at(9, cfg) == pytest.approx(1.0)
+    assert lr_at(10, cfg) == pytest.approx(1.0) and lr_at(100, cfg) == pytest.approx(0.1)
+
+
+def test_validation_errors(tmp_path):
+    policy = VLAPolicy(PolicyConfig(**TINY))
+    with pytest.raises(ValueError, match=r"batch_size \(500\) is larger than the dataset \(80"):
+        train(policy, make_dataset(), quick(batch_size=500), tmp_path, progress=False)
+    with pytest.raises(ValueError, match=r"'spatial' needs dataset field\(s\) \['privileged'\]"):
+        train(
+            policy,
+            make_dataset(privileged=False),
+            quick(aux=AuxConfig(name="spatial")),
+            tmp_path,
+            progress=False,
+        )
+    with pytest.raises(ValueError, match="unknown auxiliary objective 'depth'.*dynamics.*spatial"):
+        AuxConfig(name="depth")
+    with pytest.raises(ValueError, match="collide"):
+        train(policy, make_dataset(), quick(), tmp_path, extra_losses={"action": lambda m: 0}, progress=False)
+
+
+def test_nan_loss_names_step_and_term(tmp_path):
+    policy = VLAPolicy(PolicyConfig(**TINY))
+    calls = []
+
+    def sometimes_nan(model):
+        calls.append(1)
+        return torch.tensor(float("nan")) if len(calls) == 3 else torch.zeros(())
+
+    with pytest.raises(FloatingPointError, match=r"step 2: term\(s\) \['loss', 'bad'\]"):
+        train(policy, make_dataset(), quick(), tmp_path, extra_losses={"bad": sometimes_nan}, progress=False)
+
+
+def test_extra_loss_hook_is_called_and_logged(tmp_path):
+    policy = VLAPolicy(PolicyConfig(**TINY))
+    seen = []
+
+    def l2(model):
+        seen.append(model)
+        return 1e-3 * sum(p.pow(2).sum() for p in model.action_head.parameters())
+
+    result = train(policy, make_dataset(), quick(steps=10), tmp_path, extra_losses={"l2": l2}, progress=False)
+    assert len(seen) == 10 and seen[0] is policy
+    rows = curve(result.loss_curve_path)
+    assert all(r["l2"] > 0 for r in rows)
+    assert rows[0]["loss"] == pytest.approx(rows[0]["action"] + rows[0]["l2"], rel=1e-5)
+
+
+def test_pixels_path_trains(tmp_path):
+    config = PolicyConfig(obs_mode="pixels", image_size=16, stem_channels=[8, 16], **TINY)
+    result = train(
+        VLAPolicy(config),
+        make_dataset("pixels"),
+        quick(steps=6, aux=AuxConfig(name="spatial")),
+        tmp_path,
+        progress=False,
+    )
+    rows = curve(result.loss_curve_path)
+    assert rows[-1]["step"] == 6 and "spatial" in rows[-1]
+    with pytest.raises(ValueError, match="images are"):
+        bigger = PolicyConfig(obs_mode="pixels", image_size=32, stem_channels=[8, 16], **TINY)
+        train(VLAPolicy(bigger), make_dataset("pixels"), quick(), tmp_path / "x", progress=False)
+
+
+RUNNER = textwrap.dedent(
+    """
+    import sys, torch
+    sys.path.insert(0, {tests!r})
+    from test_trainer import TINY, make_dataset, quick
+    from capvector_core.policy import PolicyConfig, VLAPolicy
+    from capvector_core.trainer import AuxConfig, train
+    torch.set_num_threads(1)
+    torch.manual_seed(1)
+    policy = VLAPolicy(PolicyConfig(dropout=0.1, **TINY))
+    aux = AuxConfig(name="dynamics", params={{"horizon": 3}})
+    cfg = quick(steps=300, checkpoint_every=25, seed=7, aux=aux)
+    train(policy, make_dataset(), cfg, sys.argv[1], progress=False)
+    """
+)
+
+
+def test_resume_after_sigkill_is_bit_identical(tmp_path):
+    script = tmp_path / "run.py"
+    script.write_text(RUNNER.format(tests=str(REPO / "tests")))
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+
+    def run(run_dir):
+        subprocess.run([sys.executable, str(script), str(run_dir)], check=True, env=env, cwd=REPO)
+
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, str(script), str(killed)], env=env, cwd=REPO)
+    deadline = time.time() + 120
+    while not list((killed / "checkpoints").glob("step_*")) and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (killed / "policy.safetensors").exists(), "run finished before the kill; make it longer"
+    steps_at_kill = sorted(p.name for p in (killed / "checkpoints").glob("step_*"))
+    assert steps_at_kill and steps_at_kill[-1] < "step_00000300"
+    run(killed)
+    straight = tmp_path / "straight"
+    run(straight)
+    a = load_policy(killed / "policy.safetensors", device="cpu").state_dict()
+    b = load_policy(straight / "policy.safetensors", device="cpu").state_dict()
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    from safetensors.torch import load_file
+
+    ha, hb = load_file(killed / "aux_heads.safetensors"), load_file(straight / "aux_heads.safetensors")
+    assert all(torch.equal(ha[k], hb[k]) for k in ha)
+    result = json.loads((killed / "result.json").read_text())
+    assert result["resumed_from_step"] > 0
+    assert [r["step"] for r in curve(killed / "loss_curve.jsonl")] == [
+        r["step"] for r in curve(straight / "loss_curve.jsonl")
+    ]
