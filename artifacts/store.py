@@ -401,19 +401,32 @@ class ArtifactStore:
             return False
         return True
 
-    def _verify(self, record: ArtifactRecord, verify: bool) -> None:
-        """Re-hash a file when asked, or whenever its size or mtime moved since it was recorded."""
-        obj = self.object_path(record.id)
-        refreshed = False
+    def _changed(self, record: ArtifactRecord) -> dict[str, int | None]:
+        """Stored files whose size or mtime moved since they were recorded: path -> current mtime."""
+        obj, changed = self.object_path(record.id), {}
         for entry in record.files:
-            path = posixpath.join(obj, entry.path)
             try:
-                size, mtime = self._stat(path)
+                size, mtime = self._stat(posixpath.join(obj, entry.path))
             except FileNotFoundError:
                 raise CorruptArtifact(record.id, f"{entry.path} is missing") from None
-            if not verify and size == entry.size and mtime == entry.mtime_ns:
+            if size != entry.size or mtime != entry.mtime_ns:
+                changed[entry.path] = mtime
+        return changed
+
+    def _refresh_mtimes(self, record: ArtifactRecord, mtimes: dict[str, int | None]) -> None:
+        """Record new mtimes of files whose content was just re-verified, so they are not re-hashed again."""
+        if mtimes:
+            for entry in record.files:
+                entry.mtime_ns = mtimes.get(entry.path, entry.mtime_ns)
+            self._write_small(self.sidecar_path(record.id), record.model_dump_json(indent=1).encode())
+
+    def _verify(self, record: ArtifactRecord, verify: bool) -> None:
+        """Re-hash a file when asked, or whenever its size or mtime moved since it was recorded."""
+        changed = self._changed(record)
+        for entry in record.files:
+            if not verify and entry.path not in changed:
                 continue
-            with self.fs.open(path, "rb") as f:
+            with self.fs.open(posixpath.join(self.object_path(record.id), entry.path), "rb") as f:
                 digest, size = hash_stream(f)
             if size != entry.size or digest != entry.sha256:
                 raise CorruptArtifact(
@@ -421,11 +434,7 @@ class ArtifactStore:
                     f"{entry.path}: {size} bytes, sha256 {digest[:12]}…, "
                     f"recorded {entry.size} bytes, sha256 {entry.sha256[:12]}…",
                 )
-            if mtime != entry.mtime_ns:
-                entry.mtime_ns = mtime  # content intact (e.g. touched or copied): stop re-hashing it
-                refreshed = True
-        if refreshed:
-            self._write_small(self.sidecar_path(record.id), record.model_dump_json(indent=1).encode())
+        self._refresh_mtimes(record, changed)
 
     def path(self, id_or_prefix: str, verify: bool = False, member: str | None = None) -> Path:
         """Local path of a verified artifact: the file, the directory, or one `member` of a directory.
@@ -447,9 +456,14 @@ class ArtifactStore:
         return base / record.files[0].path if record.layout == "file" else base
 
     def _materialize(self, record: ArtifactRecord, verify: bool) -> Path:
-        """Download a remote artifact into the cache, hashing as it streams; reuse an intact copy."""
+        """Download a remote artifact into the cache, hashing as it streams.
+
+        A cached copy is reused while the remote files keep their recorded size and mtime (one metadata
+        call per file, no download); `verify` re-hashes the cached copy too.
+        """
         final = self.cache_dir / record.id
-        if final.is_dir():
+        changed = self._changed(record)  # a remote file that moved invalidates the cached copy
+        if final.is_dir() and not changed:
             intact = all(
                 (final / f.path).is_file() and (final / f.path).stat().st_size == f.size for f in record.files
             )
@@ -457,7 +471,7 @@ class ArtifactStore:
                 intact = all(hash_file(str(final / f.path)) == f.sha256 for f in record.files)
             if intact:
                 return final
-            shutil.rmtree(final)
+        shutil.rmtree(final, ignore_errors=True)
         staged = self.cache_dir / f".tmp-{uuid.uuid4().hex}"
         try:
             for f in record.files:
@@ -476,6 +490,7 @@ class ArtifactStore:
             except OSError:
                 if not final.is_dir():
                     raise  # otherwise a concurrent reader put the same verified copy there first
+            self._refresh_mtimes(record, changed)
             return final
         finally:
             shutil.rmtree(staged, ignore_errors=True)
