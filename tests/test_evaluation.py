@@ -1,0 +1,123 @@
+"""Batched evaluation: expert success, records, protocol fingerprint, bad policy outputs, videos."""
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
+from capvector_core.evaluation import (
+    EvalConfig,
+    EvalResult,
+    evaluate,
+    expert_action_fn,
+    protocol_dict,
+    protocol_fingerprint,
+)
+
+TASKS = ["reach-v3", "drawer-close-v3"]
+
+
+@pytest.fixture(scope="module")
+def expert_result():
+    calls = []
+
+    def counting_expert(obs, task_names):
+        calls.append(len(task_names))
+        assert obs["state"].shape == (len(task_names), 39) and "privileged" in obs
+        return expert_action_fn(obs, task_names)
+
+    config = EvalConfig(tasks=TASKS, episodes_per_task=3, horizon=150, batch_size=4)
+    return evaluate(counting_expert, config), calls
+
+
+def test_expert_succeeds_and_records_are_complete(expert_result):
+    result, calls = expert_result
+    assert result.success_rates == {"reach-v3": 1.0, "drawer-close-v3": 1.0} and result.mean_success == 1.0
+    assert [(r.task, r.seed) for r in result.episodes] == [
+        (task, EVAL_SEED_BASE + i) for task in TASKS for i in range(3)
+    ]
+    assert all(r.success and 0 < r.steps < 150 and r.episode_return > 0 for r in result.episodes)
+    assert result.env_steps == sum(r.steps for r in result.episodes)
+    # batches of at most 4 envs; one policy call per step for the still-running ones
+    assert max(calls) == 4 and result.policy_calls == len(calls)
+    assert set(result.versions) == {"metaworld", "mujoco", "numpy", "torch"}
+
+
+def test_result_json_roundtrip(expert_result):
+    result, _ = expert_result
+    assert EvalResult.from_json(result.to_json()) == result
+
+
+def test_fingerprint_tracks_the_protocol_only():
+    base = EvalConfig(tasks=TASKS, episodes_per_task=3, horizon=150)
+    fingerprint = protocol_fingerprint(base)
+    assert len(fingerprint) == 64
+    changes = [
+        {"horizon": 100},
+        {"episodes_per_task": 4},
+        {"execute_steps": 2},
+        {"obs_mode": "pixels"},
+        {"seed_base": VALIDATION_SEED_BASE},
+        {"tasks": ["reach-v3"]},
+    ]
+    for change in changes:
+        assert protocol_fingerprint(base.model_copy(update=change)) != fingerprint, change
+    not_protocol = base.model_copy(update={"batch_size": 7, "record_video": True})
+    assert protocol_fingerprint(not_protocol) == fingerprint
+    pixels = base.model_copy(update={"obs_mode": "pixels"})
+    assert protocol_fingerprint(pixels.model_copy(update={"image_size": 96})) != protocol_fingerprint(pixels)
+    readable = protocol_dict(base)
+    assert readable["benchmark"] == "metaworld-v3"
+    assert readable["seeds"] == [EVAL_SEED_BASE + i for i in range(3)]
+
+
+def test_action_chunks_are_executed_as_configured():
+    calls = []
+
+    def chunked_expert(obs, task_names):
+        calls.append(1)
+        return np.repeat(expert_action_fn(obs, task_names), 4, axis=1)  # (B, 4, 4): repeat the action
+
+    config = EvalConfig(tasks=["reach-v3"], episodes_per_task=2, horizon=60, execute_steps=4)
+    result = evaluate(chunked_expert, config)
+    assert len(calls) == result.policy_calls == -(-max(r.steps for r in result.episodes) // 4)
+
+
+@pytest.mark.parametrize(
+    ("output", "message"),
+    [
+        (lambda b: np.zeros((b, 4)), r"shape \(B=2, K, 4\); got shape \(2, 4\)"),
+        (lambda b: np.zeros((b, 1, 3)), r"got shape \(2, 1, 3\)"),
+        (lambda b: np.zeros((b + 1, 1, 4)), r"got shape \(3, 1, 4\)"),
+        (lambda b: np.full((b, 1, 4), np.nan), "NaN or infinite"),
+        (lambda b: np.zeros((b, 1, 4)), "K=1 actions but execute_steps=2"),
+    ],
+)
+def test_wrong_policy_outputs_fail_clearly(output, message):
+    execute = 2 if "execute_steps" in message else 1
+    config = EvalConfig(tasks=["reach-v3"], episodes_per_task=2, horizon=10, execute_steps=execute)
+    with pytest.raises(ValueError, match=message):
+        evaluate(lambda obs, names: output(len(names)), config)
+
+
+def test_evaluation_seeds_may_not_overlap_demo_seeds():
+    with pytest.raises(ValidationError, match="overlap the demonstration seeds"):
+        EvalConfig(tasks=["reach-v3"], seed_base=0)
+
+
+def test_pixels_evaluation_with_video(tmp_path):
+    config = EvalConfig(
+        tasks=["reach-v3"], episodes_per_task=2, horizon=40, obs_mode="pixels", image_size=32
+    ).model_copy(update={"record_video": True})
+    seen = []
+
+    def expert_checking_images(obs, task_names):
+        seen.append(obs["image"].shape)
+        return expert_action_fn(obs, task_names)
+
+    result = evaluate(expert_checking_images, config, video_dir=tmp_path)
+    assert seen[0] == (2, 32, 32, 3)
+    assert list(result.videos) == ["reach-v3"]
+    assert (tmp_path / f"reach-v3-seed{EVAL_SEED_BASE}.gif").stat().st_size > 0
+    with pytest.raises(ValueError, match="needs a video_dir"):
+        evaluate(expert_action_fn, config)
