@@ -107,8 +107,13 @@ def test_evaluation_seeds_may_not_overlap_demo_seeds():
 
 def test_pixels_evaluation_with_video(tmp_path):
     config = EvalConfig(
-        tasks=["reach-v3"], episodes_per_task=2, horizon=40, obs_mode="pixels", image_size=32
-    ).model_copy(update={"record_video": True})
+        tasks=["reach-v3"],
+        episodes_per_task=2,
+        horizon=40,
+        obs_mode="pixels",
+        image_size=32,
+        record_video=True,
+    )
     seen = []
 
     def expert_checking_images(obs, task_names):
