@@ -1,0 +1,135 @@
+"""The orthogonal regularizer of CapVector (`shared/reference/papers.md` §1.4): keep downstream updates off γ.
+
+    L = λ · Σ_p Σ_ij |γ_ij · Δ'_ij|,    λ = 1e-4 by default (the paper's best).
+
+`OrthogonalRegularizer(model, gamma, meta, ...)` is an `nn.Module` called as `reg(model) -> scalar`
+(already weighted), which is what the trainer's `extra_losses` hook expects; any training loop can add it
+to its loss. γ (and θ_meta) are stored as buffers on the parameters' device and dtype; parameters
+outside the include/exclude filter, without a γ tensor, or frozen are skipped; the work is one fused
+expression per parameter tensor (no Python loop over elements).
+
+Modes:
+- `dense` (full fine-tuning): Δ' = θ − θ_meta per parameter tensor.
+- `lora_exact`: Δ' is each adapter's dense update, ΔW = s·B·A (materialised per layer; for LoRA-SP the
+  merge-time update s·B·diag(σ̄)·A), compared with γ of that layer's weight (`<module>.weight`).
+- `lora_a`: the cheaper form the paper describes for LoRA, on the A matrices only, independent of B.
+  The sources do not say how a full-weight γ (out × in) meets A (r × in); this project defines it
+  (inferred) as the entry-wise L1 norm of the projection of γ's rows onto A's rows:
+
+      L_A = λ · Σ_layers Σ_{o,k} |(γ Aᵀ)_{ok}|.
+
+  It is zero exactly when every row of A is orthogonal to every row of γ, i.e. when the input subspace
+  the adapter reads from is orthogonal to γ's row space; then ⟨γ, B·A⟩_F = tr(Bᵀ γ Aᵀ) = 0 for every B,
+  which is the paper's constraint ⟨γ, Δ'⟩ = 0 (Eq. 6) whatever B learns. Its cost is one (out × in) by
+  (in × r) product per layer, like O-LoRA's A-subspace penalty.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from typing import Literal
+
+import torch
+from torch import nn
+
+from capvector_core.lora import adapter_modules
+from capvector_core.safetensors_io import Checkpoint
+from capvector_core.vector_ops import select_names
+
+Tensors = Mapping[str, torch.Tensor] | str | os.PathLike
+
+
+def _source(x: Tensors):
+    """Names and a getter for a dict of tensors or a safetensors checkpoint (read only what is used)."""
+    if isinstance(x, Mapping):
+        return list(x), lambda n: x[n]
+    ckpt = Checkpoint(x)
+    return ckpt.keys(), ckpt.get
+
+
+class OrthogonalRegularizer(nn.Module):
+    """λ·Σ |γ ⊙ Δ'| over the model's parameters (or adapters); see the module docstring."""
+
+    def __init__(
+        self,
+        model: nn.Module,
+        gamma: Tensors,
+        meta: Tensors | None = None,
+        weight: float = 1e-4,
+        include: Sequence[str] | None = None,
+        exclude: Sequence[str] | None = None,
+        mode: Literal["dense", "lora_exact", "lora_a"] = "dense",
+    ):
+        super().__init__()
+        self.weight = weight
+        self.mode = mode
+        g_names, g_get = _source(gamma)
+        if include or exclude:
+            g_names = select_names(g_names, include, exclude)
+        g_names = set(g_names)
+        if mode == "dense":
+            if meta is None:
+                raise ValueError("dense mode needs θ_meta (the merged checkpoint training started from)")
+            m_names, m_get = _source(meta)
+            params = {n: p for n, p in model.named_parameters() if p.requires_grad and p.is_floating_point()}
+            self.names = [n for n in params if n in g_names]
+            missing = [n for n in self.names if n not in set(m_names)]
+            if missing:
+                raise ValueError(f"θ_meta lacks {len(missing)} tensor(s) that γ has: {missing[:5]}")
+            targets = {n: params[n] for n in self.names}
+            sources = {n: (g_get(n), m_get(n)) for n in self.names}
+        elif mode in ("lora_exact", "lora_a"):
+            mods = adapter_modules(model)
+            self.names = [n for n in mods if f"{n}.weight" in g_names]
+            targets = {n: mods[n].base_layer.weight for n in self.names}
+            sources = {n: (g_get(f"{n}.weight"), None) for n in self.names}
+        else:
+            raise ValueError(f"unknown mode {mode!r}")
+        if not self.names:
+            raise ValueError(
+                f"no trainable {'parameter' if mode == 'dense' else 'adapter layer'} of the model has a γ "
+                f"tensor (γ has e.g. {sorted(g_names)[:3]})"
+            )
+        for i, n in enumerate(self.names):
+            ref = targets[n]
+            g, m = sources[n]
+            want = tuple(ref.shape)
+            if tuple(g.shape) != want or (m is not None and tuple(m.shape) != want):
+                raise ValueError(
+                    f"γ/θ_meta for {n!r} has shape {tuple(g.shape)}, the model {tuple(ref.shape)}"
+                )
+            self.register_buffer(f"gamma_{i}", g.detach().to(ref.device, ref.dtype).clone(), persistent=False)
+            if m is not None:
+                self.register_buffer(
+                    f"meta_{i}", m.detach().to(ref.device, ref.dtype).clone(), persistent=False
+                )
+        self._bound: tuple[int, list] | None = None
+
+    def _targets(self, model: nn.Module) -> list:
+        """What the loss reads from `model` (parameters or adapter modules), looked up once per model."""
+        if self._bound is None or self._bound[0] != id(model):
+            if self.mode == "dense":
+                params = dict(model.named_parameters())
+                found = [params.get(n) for n in self.names]
+            else:
+                mods = adapter_modules(model)
+                found = [mods.get(n) for n in self.names]
+            if any(f is None for f in found):
+                raise ValueError("this model lacks parameters the regularizer was built for")
+            self._bound = (id(model), found)
+        return self._bound[1]
+
+    def forward(self, model: nn.Module) -> torch.Tensor:
+        targets = self._targets(model)
+        terms = []
+        for i, t in enumerate(targets):
+            g = getattr(self, f"gamma_{i}")
+            if self.mode == "dense":
+                d = torch.sub(t, getattr(self, f"meta_{i}")).mul_(g)
+            elif self.mode == "lora_exact":
+                d = t.delta_weight() * g
+            else:
+                d = g @ t.lora_A.weight.T
+            terms.append(torch.linalg.vector_norm(d, 1, dtype=torch.float32))
+        return torch.stack(terms).sum() * self.weight
