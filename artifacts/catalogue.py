@@ -35,6 +35,8 @@ VECTOR_STATS_KIND = "vector_stats"
 T = TypeVar("T")
 Doc = EvaluationDoc | VectorStatsDoc | None
 
+# Writes are a few rows: one thread halves the cost of opening the file (no worker pool to start).
+WRITE_CONFIG = {"threads": 1}
 # Integer columns that may hold NULL: pandas would turn them into float64, so they get "Int64".
 INT_COLUMNS = {"size_bytes", "n_files", "numel", "episode", "seed", "steps", "n_episodes"}
 
@@ -220,7 +222,7 @@ class Catalogue:
 
     def _write(self, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
         def work() -> T:
-            con = duckdb.connect(str(self.path))
+            con = duckdb.connect(str(self.path), config=WRITE_CONFIG)
             try:
                 con.execute("BEGIN")
                 out = fn(con)

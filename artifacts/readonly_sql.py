@@ -16,7 +16,7 @@ import duckdb
 
 from artifacts.errors import ReadOnlyViolation
 
-READ_ONLY_CONFIG = {"enable_external_access": False, "lock_configuration": True}
+READ_ONLY_CONFIG = {"enable_external_access": False, "lock_configuration": True, "threads": 1}
 ALLOWED_TYPES = {
     duckdb.StatementType.SELECT,
     duckdb.StatementType.EXPLAIN,
