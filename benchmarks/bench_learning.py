@@ -68,10 +68,13 @@ def main() -> None:
     ap.add_argument("--execute", type=int, default=4, help="actions executed per policy call")
     ap.add_argument("--image-size", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--threads", type=int, default=1, help="torch threads (1 copes best with other jobs on the cores)"
+    )
     ap.add_argument("--tag", default="", help="suffix for the run directory and result entry")
     ap.add_argument("--fresh", action="store_true", help="delete the run directory first (no resume)")
     args = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
 
     dataset, demo_seconds = demos(args.mode, args.episodes, args.image_size)
     print(
@@ -94,7 +97,7 @@ def main() -> None:
         checkpoint_every=max(500, args.steps // 4),
         log_every=50,
         device="auto",
-        num_threads=2,
+        num_threads=args.threads,
     )
     name = f"{args.mode}{'-' + args.tag if args.tag else ''}"
     run_dir = WORK / f"run-{name}"
@@ -135,7 +138,7 @@ def main() -> None:
         "success_rates": evaluation.success_rates,
         "mean_success": evaluation.mean_success,
         "fingerprint": evaluation.fingerprint,
-        "machine": f"{platform.processor() or platform.machine()}, torch threads 2",
+        "machine": f"{platform.processor() or platform.machine()}, torch threads {args.threads}",
     }
     write_results(name, entry)
 

@@ -71,8 +71,9 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--d-model", type=int, default=128)
     ap.add_argument("--checkpoint-every", type=int, default=100)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (1 copes best with other jobs)")
     args = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
 
     from bench_learning import demos  # the learning check's cached 8-task state demos
 
@@ -85,7 +86,7 @@ def main() -> None:
         checkpoint_every=args.checkpoint_every,
         log_every=10,
         device="cpu",
-        num_threads=2,
+        num_threads=args.threads,
     )
     torch.manual_seed(0)
     initial = VLAPolicy(policy_config).state_dict()
@@ -125,7 +126,7 @@ def main() -> None:
         "overhead": round(overhead, 4),
         "target_overhead": 0.10,
         "params": sum(p.numel() for p in VLAPolicy(policy_config).parameters()),
-        "torch_threads": 2,
+        "torch_threads": args.threads,
     }
     print(json.dumps(entry, indent=1))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -134,7 +135,8 @@ def main() -> None:
         "# Training throughput (benchmark b)\n\n"
         "`trainer.train` vs a plain PyTorch loop: same model and initial weights, same batches, AdamW,\n"
         "schedule and clipping; alternating runs in one process; whole calls timed (set-up, checkpoints\n"
-        f"every {args.checkpoint_every} steps and the final save included). CPU, 2 torch threads;\n"
+        f"every {args.checkpoint_every} steps and the final save included). CPU, "
+        f"{args.threads} torch thread(s);\n"
         "the machine is shared with other work, so absolute numbers vary between runs;\n"
         "the ratio is the measurement.\n\n"
         "| model | batch | steps x rounds | ours samples/s | plain samples/s | overhead | target |\n"

@@ -40,7 +40,8 @@ from capvector_core.policy import VLAPolicy, load_policy_weights, save_policy
 
 ExtraLoss = Callable[[nn.Module], torch.Tensor]
 _CKPT = re.compile(r"^step_(\d{8})$")
-# Fields that change neither the batches nor the arithmetic: allowed to differ on resume.
+# Fields allowed to differ on resume: they change neither the batches nor the schedule. (Another device
+# or thread count can change float rounding: bit-identical resume needs those to match as well.)
 _RESUME_FREE = {"checkpoint_every", "log_every", "num_threads", "device", "keep_checkpoints"}
 
 

@@ -212,3 +212,13 @@ def test_resume_after_sigkill_is_bit_identical(tmp_path):
     assert [r["step"] for r in curve(killed / "loss_curve.jsonl")] == [
         r["step"] for r in curve(straight / "loss_curve.jsonl")
     ]
+
+
+def test_resume_refuses_a_different_config(tmp_path):
+    policy = VLAPolicy(PolicyConfig(**TINY))
+    train(policy, make_dataset(), quick(steps=10, checkpoint_every=5), tmp_path, progress=False)
+    cfg = quick(steps=10, checkpoint_every=5, log_every=2)
+    again = train(policy, make_dataset(), cfg, tmp_path, progress=False)
+    assert again.resumed_from_step == 10  # finished run: nothing left to do, log_every may differ
+    with pytest.raises(ValueError, match=r"differs in \['lr'\]"):
+        train(policy, make_dataset(), quick(steps=10, lr=1e-2), tmp_path, progress=False)
