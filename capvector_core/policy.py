@@ -389,7 +389,8 @@ def build_policy(config: PolicyConfig | Mapping, device: str | torch.device = "a
     return VLAPolicy(config).to(resolve_device(device))
 
 
-def _atomic_save(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str]) -> None:
+def save_tensors_atomic(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str]) -> None:
+    """safetensors write via a temporary name, fsync and rename: readers never see half a file."""
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata=metadata)
     with open(tmp, "rb") as fh:
@@ -409,7 +410,7 @@ def save_policy(model: VLAPolicy, path: str | Path, metadata: Mapping[str, str] 
     extra[CONFIG_METADATA_KEY] = model.config.model_dump_json()
     tensors = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_save(tensors, path, extra)
+    save_tensors_atomic(tensors, path, extra)
     return path
 
 

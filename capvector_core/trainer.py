@@ -36,7 +36,7 @@ from torch import nn
 from capvector_core import tokenizer
 from capvector_core.aux_objectives import AuxObjective, build_objective, get_objective
 from capvector_core.device import resolve_device
-from capvector_core.policy import VLAPolicy, load_policy_weights, save_policy
+from capvector_core.policy import VLAPolicy, load_policy_weights, save_policy, save_tensors_atomic
 
 ExtraLoss = Callable[[nn.Module], torch.Tensor]
 _CKPT = re.compile(r"^step_(\d{8})$")
@@ -440,9 +440,7 @@ def train(
     aux_path = None
     if objective is not None:
         aux_path = run_dir / "aux_heads.safetensors"
-        save_file(
-            _cpu_state(objective), str(aux_path), metadata={"capvector.aux": config.aux.model_dump_json()}
-        )
+        save_tensors_atomic(_cpu_state(objective), aux_path, {"capvector.aux": config.aux.model_dump_json()})
     if math.isnan(last_loss):
         last_loss = _last_logged_loss(curve_path)
     result = TrainResult(
