@@ -172,6 +172,8 @@ def run_row(run: RunRecord) -> dict[str, Any]:
 
 
 class RebuildReport(BaseModel):
+    """What a rebuild indexed, and which artifacts it skipped because they failed verification."""
+
     artifacts: int
     runs: int
     corrupt: list[str]

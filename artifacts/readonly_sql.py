@@ -8,6 +8,7 @@ Three independent guards, because each alone has a gap:
    (EXPLAIN ANALYZE of an INSERT, say) cannot change the catalogue file;
 3. `enable_external_access=false` with the configuration locked, so no statement can touch other
    files or the network, and a SET inside the query cannot undo that.
+One thread: opening a catalogue costs about half as much without a worker pool to start.
 """
 
 import re
