@@ -1,0 +1,203 @@
+"""The pipeline's configuration: one pydantic model, composed of the library's own config models.
+
+Presets (`flows/presets/*.yaml`) are instances of it; `--set a.b=value` overrides are checked
+against it before validation (`flows.overrides`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE, DemoConfig
+from capvector_core.evaluation import EvalConfig
+from capvector_core.lora import LoraConfig
+from capvector_core.lora_sp import LoraSPConfig
+from capvector_core.metaworld_tasks import validate_task_names
+from capvector_core.policy import PolicyConfig
+from capvector_core.trainer import AuxConfig, TrainConfig
+from flows.overrides import apply_overrides
+from tasks.training import OrthogonalSettings, TrainStepConfig
+from tasks.vectors import MergeConfig, VectorFilter
+
+PRESET_DIR = Path(__file__).parent / "presets"
+
+ArmName = Literal[
+    "sft", "aux", "capvector", "meta_sft", "sft_lora", "capvector_lora", "sft_lora_sp", "capvector_lora_sp"
+]
+
+
+class Arm(BaseModel):
+    """One downstream fine-tuning recipe: where it starts and what it adds to standard SFT."""
+
+    init: Literal["pretrained", "meta"]
+    aux: bool = False
+    orthogonal: bool = False
+    adapter: Literal["full", "lora", "lora_sp"] = "full"
+
+
+ARMS: dict[str, Arm] = {
+    "sft": Arm(init="pretrained"),
+    "aux": Arm(init="pretrained", aux=True),
+    "capvector": Arm(init="meta", orthogonal=True),
+    "meta_sft": Arm(init="meta"),
+    "sft_lora": Arm(init="pretrained", adapter="lora"),
+    "capvector_lora": Arm(init="meta", orthogonal=True, adapter="lora"),
+    "sft_lora_sp": Arm(init="pretrained", adapter="lora_sp"),
+    "capvector_lora_sp": Arm(init="meta", orthogonal=True, adapter="lora_sp"),
+}
+
+
+class Splits(BaseModel):
+    """Task splits: D_down's tasks appear in neither the pretraining nor the extraction set."""
+
+    model_config = ConfigDict(extra="forbid")
+    pretrain: list[str]
+    extraction: list[str]
+    downstream: list[str]
+
+    @model_validator(mode="after")
+    def _valid_and_disjoint(self) -> Splits:
+        for name in ("pretrain", "extraction", "downstream"):
+            validate_task_names(getattr(self, name))
+        seen = set(self.pretrain) | set(self.extraction)
+        overlap = sorted(seen & set(self.downstream))
+        if overlap:
+            raise ValueError(f"splits.downstream shares task(s) {overlap} with pretrain/extraction")
+        return self
+
+
+class DataSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    obs_mode: Literal["state", "pixels"] = "state"
+    camera: str = "corner2"
+    image_size: int = 64
+    horizon: int = Field(500, ge=1, le=500)
+    episodes_pretrain: int = Field(25, ge=1)
+    episodes_extraction: int = Field(10, ge=1)
+    episodes_downstream: int = Field(10, ge=1)
+    workers: int = Field(2, ge=1)
+
+
+class EvalSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    episodes_per_task: int = Field(20, ge=1)
+    validation_episodes_per_task: int = Field(10, ge=1)
+    horizon: int = Field(500, ge=1, le=500)
+    execute_steps: int = Field(1, ge=1)
+    batch_size: int = Field(64, ge=1)
+
+
+class SweepSettings(BaseModel):
+    """The α × λ grid of the `sweep` flow; choices are made on validation seeds only."""
+
+    model_config = ConfigDict(extra="forbid")
+    alphas: list[float] = Field(default_factory=lambda: [0.5, 1.1, 1.5])
+    lambdas: list[float] = Field(default_factory=lambda: [1e-5, 1e-4, 1e-3])
+    arm: ArmName = "capvector"
+
+
+class PipelineConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str = "pipeline"
+    splits: Splits
+    data: DataSettings = DataSettings()
+    policy: PolicyConfig = PolicyConfig()
+    pretrain: TrainConfig
+    extraction: TrainConfig
+    aux: AuxConfig = AuxConfig(name="dynamics")
+    downstream: TrainConfig
+    vector: VectorFilter = VectorFilter()
+    alpha: float = 1.1
+    orthogonal: OrthogonalSettings = OrthogonalSettings()
+    lora: LoraConfig = LoraConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"])
+    lora_sp: LoraSPConfig = LoraSPConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"], bank_size=32)
+    arms: list[ArmName] = Field(default_factory=lambda: ["sft", "aux", "capvector"])
+    seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
+    evaluation: EvalSettings = EvalSettings()
+    sweep: SweepSettings = SweepSettings()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> PipelineConfig:
+        if self.policy.obs_mode != self.data.obs_mode:
+            raise ValueError(
+                f"policy.obs_mode ({self.policy.obs_mode}) differs from data.obs_mode ({self.data.obs_mode})"
+            )
+        if self.data.obs_mode == "pixels" and self.policy.image_size != self.data.image_size:
+            raise ValueError(
+                f"policy.image_size ({self.policy.image_size}) differs from data.image_size "
+                f"({self.data.image_size})"
+            )
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds must be distinct, got {self.seeds}")
+        return self
+
+    # ------------------------------------------------------------ step configs
+    def demo_config(self, split: Literal["pretrain", "extraction", "downstream"]) -> DemoConfig:
+        episodes = {
+            "pretrain": self.data.episodes_pretrain,
+            "extraction": self.data.episodes_extraction,
+            "downstream": self.data.episodes_downstream,
+        }[split]
+        return DemoConfig(
+            tasks=getattr(self.splits, split), episodes_per_task=episodes, obs_mode=self.data.obs_mode,
+            camera=self.data.camera, image_size=self.data.image_size, horizon=self.data.horizon,
+            workers=self.data.workers,
+        )
+
+    def pretrain_step(self) -> TrainStepConfig:
+        return TrainStepConfig(policy=self.policy, train=self.pretrain)
+
+    def extraction_step(self, auxiliary: bool) -> TrainStepConfig:
+        train = self.extraction.model_copy(update={"aux": self.aux if auxiliary else None})
+        return TrainStepConfig(train=train)
+
+    def downstream_step(self, arm: str, seed: int, orthogonal_weight: float | None = None) -> TrainStepConfig:
+        spec = ARMS[arm]
+        train = self.downstream.model_copy(update={"seed": seed, "aux": self.aux if spec.aux else None})
+        orthogonal = None
+        if spec.orthogonal:
+            weight = self.orthogonal.weight if orthogonal_weight is None else orthogonal_weight
+            orthogonal = self.orthogonal.model_copy(update={"weight": weight})
+        return TrainStepConfig(
+            train=train,
+            adapter=spec.adapter,
+            lora=self.lora if spec.adapter == "lora" else None,
+            lora_sp=self.lora_sp if spec.adapter == "lora_sp" else None,
+            orthogonal=orthogonal,
+        )
+
+    def merge_config(self, alpha: float | None = None) -> MergeConfig:
+        return MergeConfig(alpha=self.alpha if alpha is None else alpha, **self.vector.model_dump())
+
+    def eval_config(self, validation: bool = False) -> EvalConfig:
+        return EvalConfig(
+            tasks=self.splits.downstream,
+            episodes_per_task=(
+                self.evaluation.validation_episodes_per_task if validation else self.evaluation.episodes_per_task
+            ),
+            seed_base=VALIDATION_SEED_BASE if validation else EVAL_SEED_BASE,
+            horizon=self.evaluation.horizon, obs_mode=self.data.obs_mode, camera=self.data.camera,
+            image_size=self.data.image_size, execute_steps=self.evaluation.execute_steps,
+            batch_size=self.evaluation.batch_size,
+        )
+
+
+def preset_path(preset: str) -> Path:
+    """A preset name (`smoke`, `quick`, `paper`) or a path to a YAML file."""
+    path = Path(preset)
+    if path.suffix in (".yaml", ".yml") and path.exists():
+        return path
+    candidate = PRESET_DIR / f"{preset}.yaml"
+    if not candidate.exists():
+        known = sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+        raise ValueError(f"unknown preset {preset!r}; known presets: {known} (or give a .yaml path)")
+    return candidate
+
+
+def load_config(preset: str = "quick", overrides: list[str] | None = None) -> PipelineConfig:
+    data = yaml.safe_load(preset_path(preset).read_text()) or {}
+    return PipelineConfig.model_validate(apply_overrides(data, list(overrides or []), PipelineConfig))

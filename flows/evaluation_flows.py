@@ -1,0 +1,92 @@
+"""The `evaluate` and `reevaluate` flows: score any checkpoints, or re-score what a query selects."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from prefect import flow
+
+from capvector_core.evaluation import EvalConfig
+from flows.runs import publish_markdown, recorded_run
+from tasks.evaluation import evaluate_task, reevaluate_task
+from tasks.workspace import Workspace
+
+# Checkpoints with at least one evaluation, and the protocols they were evaluated under.
+DEFAULT_SELECTION = "SELECT DISTINCT checkpoint_id FROM eval_tasks"
+
+
+@flow(name="evaluate", log_prints=True)
+def evaluate_flow(home: str, checkpoint_ids: list[str], config: dict[str, Any]) -> dict[str, str]:
+    """Evaluate each checkpoint under one protocol (cached: the same checkpoint and protocol run once)."""
+    workspace = Workspace(home)
+    eval_config = EvalConfig.model_validate(config).model_dump(mode="json")
+    full_ids = [workspace.api.get(i).id for i in checkpoint_ids]  # unknown ids fail before any work
+    with recorded_run(workspace, "evaluate", {"checkpoints": full_ids, "config": eval_config}):
+        futures = {
+            cid: evaluate_task.submit(home, f"evaluate {cid[:12]}", {"checkpoint": cid}, eval_config)
+            for cid in full_ids
+        }
+        return {cid: f.result() for cid, f in futures.items()}
+
+
+def _previous_protocols(workspace: Workspace, checkpoint_id: str) -> list[dict[str, Any]]:
+    """The distinct eval configs this checkpoint was evaluated with (from the evaluation records)."""
+    frame = workspace.api.query(
+        "SELECT DISTINCT evaluation_id FROM eval_tasks WHERE checkpoint_id = ?", [checkpoint_id]
+    )
+    configs: dict[str, dict[str, Any]] = {}
+    for eval_id in frame["evaluation_id"]:
+        config = workspace.api.get(eval_id).config.get("eval")
+        if config:
+            configs[EvalConfig.model_validate(config).model_dump_json()] = config
+    return list(configs.values())
+
+
+def _latest_scores(workspace: Workspace, checkpoint_id: str, fingerprint: str, before_eval: str) -> dict:
+    frame = workspace.api.query(
+        "SELECT task, success_rate, evaluation_id, evaluated_at FROM eval_tasks "
+        "WHERE checkpoint_id = ? AND fingerprint = ? AND evaluation_id <> ? ORDER BY evaluated_at",
+        [checkpoint_id, fingerprint, before_eval],
+    )
+    return {row.task: row.success_rate for row in frame.itertuples()}
+
+
+@flow(name="reevaluate", log_prints=True)
+def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[dict[str, Any]]:
+    """Re-run every (checkpoint, protocol) the selection yields under the installed library versions.
+
+    New scores are appended (evaluations are never overwritten); the summary lists, per checkpoint and
+    task, the previous and the new success rate under the same protocol fingerprint.
+    """
+    workspace = Workspace(home)
+    selected = workspace.api.query(selection_sql)
+    if selected.empty:
+        return []
+    checkpoint_ids = [str(x) for x in selected.iloc[:, 0].dropna().unique()]
+    with recorded_run(workspace, "reevaluate", {"selection_sql": selection_sql, "checkpoints": checkpoint_ids}):
+        jobs = [(cid, cfg) for cid in checkpoint_ids for cfg in _previous_protocols(workspace, cid)]
+        futures = [
+            (cid, reevaluate_task.submit(home, f"reevaluate {cid[:12]}", {"checkpoint": cid}, cfg))
+            for cid, cfg in jobs
+        ]
+        changes = []
+        for cid, future in futures:
+            eval_id = future.result()
+            record = workspace.api.get(eval_id)
+            fingerprint = workspace.api.store.open_json(eval_id)["fingerprint"]
+            before = _latest_scores(workspace, cid, fingerprint, eval_id)
+            for task_name, new in sorted(record.config["success_rates"].items()):
+                old = before.get(task_name)
+                changes.append({"checkpoint_id": cid, "task": task_name, "previous": old, "new": new,
+                                "changed": old is not None and abs(old - new) > 1e-9,
+                                "evaluation_id": eval_id, "fingerprint": fingerprint})
+        publish_markdown("reevaluation-summary", summary_markdown(changes), "scores before and after")
+    return changes
+
+
+def summary_markdown(changes: list[dict[str, Any]]) -> str:
+    lines = ["| checkpoint | task | previous | new | changed |", "|---|---|---|---|---|"]
+    for c in changes:
+        prev = "-" if c["previous"] is None else f"{c['previous']:.3f}"
+        lines.append(f"| {c['checkpoint_id'][:12]} | {c['task']} | {prev} | {c['new']:.3f} | {c['changed']} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,79 @@
+"""Dotted `--set key.path=value` overrides applied to a preset before validation.
+
+Keys are checked against the pydantic model's fields (not only against the preset file), so a
+typo fails with the full key path and a suggestion instead of being silently ignored.
+"""
+
+from __future__ import annotations
+
+import difflib
+import types
+import typing
+from typing import Any
+
+import yaml
+from pydantic import BaseModel
+
+
+class ConfigKeyError(ValueError):
+    """An override names a key the configuration does not have."""
+
+
+def _model_in(annotation: Any) -> type[BaseModel] | None:
+    """The pydantic model inside an annotation such as `Model`, `Model | None`, `Optional[Model]`."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        for arg in typing.get_args(annotation):
+            found = _model_in(arg)
+            if found is not None:
+                return found
+    return None
+
+
+def _check_path(model: type[BaseModel], path: list[str], full_key: str) -> None:
+    current: type[BaseModel] | None = model
+    for depth, part in enumerate(path):
+        if current is None:
+            prefix = ".".join(path[:depth])
+            raise ConfigKeyError(f"unknown config key {full_key!r}: {prefix!r} has no sub-keys")
+        fields = current.model_fields
+        if part not in fields:
+            hint = difflib.get_close_matches(part, list(fields), n=1)
+            suggestion = f" (did you mean {'.'.join(path[:depth] + hint)!r}?)" if hint else ""
+            known = ", ".join(sorted(fields))
+            raise ConfigKeyError(f"unknown config key {full_key!r}{suggestion}; known here: {known}")
+        current = _model_in(fields[part].annotation)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """`a.b=3` -> (['a', 'b'], 3); the value is parsed as YAML so numbers, lists and bools work."""
+    if "=" not in text:
+        raise ConfigKeyError(f"override {text!r} must look like key.path=value")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise ConfigKeyError(f"override {text!r} has an empty key segment")
+    return key.split("."), yaml.safe_load(raw) if raw.strip() else ""
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[BaseModel]) -> dict[str, Any]:
+    """Return a copy of `data` with every override set, after checking its key path on `model`."""
+    result: dict[str, Any] = _deep_copy(data)
+    for text in overrides:
+        path, value = parse_override(text)
+        _check_path(model, path, ".".join(path))
+        node = result
+        for part in path[:-1]:
+            child = node.get(part)
+            if not isinstance(child, dict):
+                child = {}
+                node[part] = child
+            node = child
+        node[path[-1]] = value
+    return result
+
+
+def _deep_copy(data: dict[str, Any]) -> dict[str, Any]:
+    return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in data.items()}

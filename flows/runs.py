@@ -1,0 +1,42 @@
+"""Run bookkeeping shared by all flows: a `runs` row in the catalogue and a Markdown summary in Prefect."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from prefect.artifacts import create_markdown_artifact
+from prefect.runtime import flow_run
+
+from artifacts.records import RunRecord, utcnow
+from tasks.workspace import Workspace
+
+
+@contextmanager
+def recorded_run(workspace: Workspace, flow_name: str, parameters: dict[str, Any]) -> Iterator[None]:
+    """Record the flow run as RUNNING, then COMPLETED or FAILED, whatever happens in between."""
+    run = RunRecord(
+        flow_run_id=str(flow_run.id or f"local-{utcnow().isoformat()}"),
+        flow_name=flow_name,
+        parameters=parameters,
+        started_at=utcnow(),
+    )
+    workspace.api.record_run(run)
+    try:
+        yield
+    except BaseException:
+        workspace.api.record_run(run.model_copy(update={"state": "FAILED", "ended_at": utcnow()}))
+        raise
+    workspace.api.record_run(run.model_copy(update={"state": "COMPLETED", "ended_at": utcnow()}))
+
+
+def publish_markdown(key: str, markdown: str, description: str) -> None:
+    """A Markdown artifact in the Prefect UI (a no-op cost on the embedded API)."""
+    create_markdown_artifact(markdown=markdown, key=_key(key), description=description)
+
+
+def _key(text: str) -> str:
+    """Prefect artifact keys: lowercase letters, numbers and dashes only."""
+    cleaned = "".join(c if c.isalnum() else "-" for c in text.lower())
+    return "-".join(part for part in cleaned.split("-") if part)[:100] or "capvector"

@@ -1,0 +1,62 @@
+"""The `sweep` flow: a grid over α (merge) and λ (orthogonal weight), chosen on validation seeds.
+
+Validation goal variations (VALIDATION_SEED_BASE) are disjoint from the test seeds the pipeline
+reports, so the pick never looks at a test score.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from prefect import flow
+
+from flows.config import ARMS, PipelineConfig
+from flows.pipeline import submit_arm, submit_vector_stage
+from flows.runs import publish_markdown, recorded_run
+from tasks.evaluation import evaluate_task
+from tasks.vectors import merge_task
+from tasks.workspace import Workspace, provenance
+
+
+@flow(name="sweep", log_prints=True)
+def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
+    cfg = PipelineConfig.model_validate(config)
+    workspace = Workspace(home)
+    arm, seed = cfg.sweep.arm, cfg.seeds[0]
+    lambdas = cfg.sweep.lambdas if ARMS[arm].orthogonal else [None]
+    with recorded_run(workspace, "sweep", {"config": config, "home": home}):
+        stage = submit_vector_stage(home, cfg)
+        validation = cfg.eval_config(validation=True).model_dump(mode="json")
+        cells = []
+        for alpha in cfg.sweep.alphas:
+            meta = merge_task.submit(
+                home, f"merge θ_meta (α={alpha})", {"base": stage["pretrained"], "vector": stage["vector"]},
+                cfg.merge_config(alpha).model_dump(mode="json"),
+            )
+            for lam in lambdas:
+                label = f"{arm} α={alpha} λ={lam}"
+                checkpoint = submit_arm(home, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label)
+                evaluation = evaluate_task.submit(home, f"validate {label}", {"checkpoint": checkpoint}, validation)
+                cells.append({"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation})
+        rows = []
+        for cell in cells:
+            eval_id = cell["evaluation"].result()
+            rows.append({"alpha": cell["alpha"], "lambda": cell["lambda"], "checkpoint_id": cell["checkpoint"].result(),
+                         "evaluation_id": eval_id,
+                         "validation_success": workspace.api.get(eval_id).config["mean_success"]})
+        best = max(rows, key=lambda r: r["validation_success"])
+        doc = {"arm": arm, "seed": seed, "grid": rows, "best": best, "selected_on": "validation seeds"}
+        record = workspace.api.register_json(
+            doc, kind="sweep", name=f"sweep {cfg.name}",
+            parents=[(e, "evaluation") for e in dict.fromkeys(r["evaluation_id"] for r in rows)], **provenance(),
+        )
+        publish_markdown(f"{cfg.name}-sweep", sweep_markdown(doc), "α × λ sweep on validation seeds")
+    return {"sweep": record.id, **doc}
+
+
+def sweep_markdown(doc: dict[str, Any]) -> str:
+    lines = ["| α | λ | validation success |", "|---|---|---|"]
+    for r in doc["grid"]:
+        mark = " **(best)**" if r == doc["best"] else ""
+        lines.append(f"| {r['alpha']} | {r['lambda']} | {100 * r['validation_success']:.1f}%{mark} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,94 @@
+"""Step: the comparison table of the pipeline's arms (mean ± std over training seeds, per task)."""
+
+from __future__ import annotations
+
+import statistics
+from typing import Any
+
+from tasks.caching import cached_step
+from tasks.prefect_task import pipeline_task
+from tasks.workspace import Workspace, provenance
+
+
+def _mean_std(values: list[float]) -> dict[str, float]:
+    return {
+        "mean": statistics.fmean(values),
+        "std": statistics.stdev(values) if len(values) > 1 else 0.0,
+        "n": len(values),
+    }
+
+
+def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, Any]:
+    """`evaluations`: label "<arm>/seed<k>" -> evaluation id. Refuses mixed protocols."""
+    per_arm: dict[str, list[dict[str, Any]]] = {}
+    fingerprints = set()
+    for label, eval_id in sorted(evaluations.items()):
+        arm = label.split("/")[0]
+        record = workspace.api.get(eval_id)
+        doc = workspace.api.store.open_json(eval_id)
+        checkpoint = workspace.api.get(doc["checkpoint_id"])
+        summary = checkpoint.config.get("summary", {})
+        fingerprints.add(doc["fingerprint"])
+        per_arm.setdefault(arm, []).append(
+            {
+                "label": label,
+                "evaluation_id": eval_id,
+                "checkpoint_id": checkpoint.id,
+                "success_rates": record.config["success_rates"],
+                "mean_success": record.config["mean_success"],
+                "steps_per_s": summary.get("steps_per_s"),
+                "trainable_parameters": summary.get("trainable_parameters"),
+                "active_ranks": summary.get("active_ranks"),
+            }
+        )
+    if len(fingerprints) > 1:
+        raise ValueError(f"evaluations use {len(fingerprints)} different protocols; refusing to compare them")
+    arms = {}
+    for arm, runs in per_arm.items():
+        tasks = sorted(runs[0]["success_rates"])
+        speeds = [r["steps_per_s"] for r in runs if r["steps_per_s"]]
+        arms[arm] = {
+            "overall": _mean_std([r["mean_success"] for r in runs]),
+            "per_task": {t: _mean_std([r["success_rates"][t] for r in runs]) for t in tasks},
+            "ms_per_step": 1000.0 / statistics.fmean(speeds) if speeds else None,
+            "trainable_parameters": runs[0]["trainable_parameters"],
+            "runs": runs,
+        }
+    return {"fingerprint": fingerprints.pop() if fingerprints else None, "arms": arms}
+
+
+def markdown_table(table: dict[str, Any]) -> str:
+    arms = table["arms"]
+    if not arms:
+        return "(no evaluations)\n"
+    tasks = sorted(next(iter(arms.values()))["per_task"])
+    head = ["arm", "overall"] + tasks + ["ms/step", "trainable params", "seeds"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for arm, row in arms.items():
+        cells = [arm, _pct(row["overall"])] + [_pct(row["per_task"][t]) for t in tasks]
+        ms = row["ms_per_step"]
+        cells += [f"{ms:.1f}" if ms else "-", f"{row['trainable_parameters'] or '-'}", str(row["overall"]["n"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + f"\n\nProtocol fingerprint: `{table['fingerprint']}`\n"
+
+
+def _pct(stat: dict[str, float]) -> str:
+    return f"{100 * stat['mean']:.1f} ± {100 * stat['std']:.1f}"
+
+
+def run_report(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    def produce(key: str) -> str:
+        table = comparison(workspace, inputs)
+        table["markdown"] = markdown_table(table)
+        record = workspace.api.register_json(
+            table, kind="report", name=step, config={**config, "cache_key": key},
+            parents=[(eval_id, "evaluation") for eval_id in dict.fromkeys(inputs.values())], **provenance(),
+        )
+        return record.id
+
+    return cached_step(workspace, "report", inputs, config, produce)
+
+
+@pipeline_task("report")
+def report_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_report(Workspace(home), step, inputs, config)

@@ -1,0 +1,186 @@
+"""Step: train a policy (pretraining, standard or auxiliary SFT, downstream fine-tuning) into a checkpoint.
+
+One step covers every training stage of the recipe; what differs is the config (aux objective,
+adapter, orthogonal regularizer) and the inputs (`data`, optional `init` checkpoint, optional
+`vector` γ for the regularizer). The checkpoint artifact holds dense weights only (LoRA runs are
+merged), so vectors can be taken from any of them; the adapter and the training log are separate
+artifacts that point at it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from pydantic import BaseModel, ConfigDict, model_validator
+
+from capvector_core import lora, lora_sp, tokenizer
+from capvector_core.demos import DemoDataset
+from capvector_core.lora import LoraConfig
+from capvector_core.lora_sp import LoraSPConfig
+from capvector_core.orthogonal import OrthogonalRegularizer
+from capvector_core.policy import PolicyConfig, VLAPolicy, build_policy, load_policy, save_policy
+from capvector_core.trainer import TrainConfig, train
+from tasks.caching import cached_step
+from tasks.prefect_task import pipeline_task
+from tasks.progress import quiet
+from tasks.workspace import Workspace, provenance
+
+CALIBRATION_BATCHES = 8
+
+
+class OrthogonalSettings(BaseModel):
+    """λ·Σ|γ ⊙ Δ'|; `mode` for adapters: `lora_exact` (B·A materialised) or `lora_a` (A only)."""
+
+    model_config = ConfigDict(extra="forbid")
+    weight: float = 1e-4
+    lora_mode: Literal["lora_exact", "lora_a"] = "lora_exact"
+    include: list[str] | None = None
+    exclude: list[str] | None = None
+
+
+class TrainStepConfig(BaseModel):
+    """Everything that decides a trained checkpoint besides its input artifacts."""
+
+    model_config = ConfigDict(extra="forbid")
+    policy: PolicyConfig | None = None  # only for training from scratch (no `init` input)
+    train: TrainConfig
+    adapter: Literal["full", "lora", "lora_sp"] = "full"
+    lora: LoraConfig | None = None
+    lora_sp: LoraSPConfig | None = None
+    orthogonal: OrthogonalSettings | None = None
+
+    @model_validator(mode="after")
+    def _adapter_config_present(self) -> TrainStepConfig:
+        if self.adapter == "lora" and self.lora is None:
+            raise ValueError("adapter 'lora' needs a `lora` config")
+        if self.adapter == "lora_sp" and self.lora_sp is None:
+            raise ValueError("adapter 'lora_sp' needs a `lora_sp` config")
+        return self
+
+
+def _initial_policy(workspace: Workspace, cfg: TrainStepConfig, init_id: str | None) -> VLAPolicy:
+    if init_id is None:
+        if cfg.policy is None:
+            raise ValueError("training from scratch (no `init` checkpoint) needs a `policy` config")
+        return build_policy(cfg.policy, device=cfg.train.device)
+    return load_policy(workspace.path(init_id), device=cfg.train.device)
+
+
+def _orthogonal(
+    workspace: Workspace, model: VLAPolicy, cfg: TrainStepConfig, inputs: dict[str, str]
+) -> OrthogonalRegularizer | None:
+    if cfg.orthogonal is None:
+        return None
+    if "vector" not in inputs or "init" not in inputs:
+        raise ValueError("the orthogonal regularizer needs inputs `vector` (γ) and `init` (θ_meta)")
+    settings = cfg.orthogonal
+    mode = "dense" if cfg.adapter == "full" else settings.lora_mode
+    return OrthogonalRegularizer(
+        model,
+        workspace.path(inputs["vector"]),
+        workspace.path(inputs["init"]) if mode == "dense" else None,
+        weight=settings.weight,
+        include=settings.include,
+        exclude=settings.exclude,
+        mode=mode,
+    )
+
+
+def _calibration_batches(model: VLAPolicy, dataset: DemoDataset, seed: int) -> list[dict[str, torch.Tensor]]:
+    """Batches from the training data for LoRA-SP's dense merge (its mean score vector)."""
+    cfg = model.config
+    tokens = tokenizer.encode_batch(list(dataset.meta.instructions), cfg.vocab_size, cfg.max_instruction_tokens)
+    generator = torch.Generator().manual_seed(seed)
+    obs_key = "image" if cfg.obs_mode == "pixels" else "state"
+    n = dataset.tensors["action"].shape[0]
+    batches = []
+    for _ in range(CALIBRATION_BATCHES):
+        rows = torch.randint(0, n, (min(256, n),), generator=generator)
+        batch = {k: dataset.tensors[k][rows].to(model.device) for k in (obs_key, "proprio")}
+        batch["tokens"] = tokens[dataset.tensors["task"][rows]].to(model.device)
+        batches.append(batch)
+    return batches
+
+
+def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    cfg = TrainStepConfig.model_validate(config)
+    if "data" not in inputs:
+        raise ValueError(f"step {step!r}: training needs a `data` input (a dataset artifact id)")
+
+    def produce(key: str) -> str:
+        dataset = DemoDataset.load(workspace.path(inputs["data"]))
+        model = _initial_policy(workspace, cfg, inputs.get("init"))
+        if cfg.adapter == "lora":
+            lora.apply_lora(model, cfg.lora)
+        elif cfg.adapter == "lora_sp":
+            lora_sp.apply_lora_sp(model, cfg.lora_sp)
+        extra: dict[str, Any] = {}
+        regularizer = _orthogonal(workspace, model, cfg, inputs)
+        if regularizer is not None:
+            extra["orthogonal"] = regularizer
+        if cfg.adapter == "lora_sp":
+            extra["lora_sp"] = lora_sp.lora_sp_loss
+        trainable = lora.trainable_parameter_count(model)
+        run_dir = workspace.run_dir(key)
+        result = train(model, dataset, cfg.train, run_dir, extra_losses=extra, progress=not quiet())
+
+        summary = {
+            "step": step,
+            "steps": result.steps,
+            "steps_per_s": result.steps_per_s,
+            "samples_per_s": result.samples_per_s,
+            "final_loss": result.final_loss,
+            "resumed_from_step": result.resumed_from_step,
+            "trainable_parameters": trainable,
+            "adapter": cfg.adapter,
+        }
+        with workspace.scratch() as tmp:
+            adapter_dir = None
+            if cfg.adapter == "lora":
+                adapter_dir = lora.save_adapter(model, tmp / "adapter")
+                lora.merge_lora(model)
+            elif cfg.adapter == "lora_sp":
+                lora_sp.calibrate(model, _calibration_batches(model, dataset, cfg.train.seed))
+                summary["active_ranks"] = lora_sp.active_ranks(model, since_reset=True)
+                adapter_dir = lora_sp.save_adapter(model, tmp / "adapter")
+                lora.merge_lora(model)
+            weights = save_policy(model, tmp / "model.safetensors", {"capvector.step": step})
+            parents = [(inputs["data"], "data")]
+            if "init" in inputs:
+                parents.append((inputs["init"], "init"))
+            if "vector" in inputs:
+                parents.append((inputs["vector"], "regularized_by"))
+            meta = provenance()
+            record_config = {"train_step": cfg.model_dump(mode="json"), "cache_key": key, "summary": summary}
+            checkpoint = workspace.api.register_file(
+                weights, kind="checkpoint", name=step, config=record_config, parents=parents, **meta
+            )
+            _register_log(workspace, result.loss_curve_path, summary, step, checkpoint.id, meta)
+            if adapter_dir is not None:
+                workspace.api.register_dir(
+                    adapter_dir, kind="adapter", name=f"{step} adapter", config={"adapter": cfg.adapter},
+                    parents=[(checkpoint.id, "adapter_of")], **meta,
+                )
+        workspace.finish_run_dir(key)
+        return checkpoint.id
+
+    return cached_step(workspace, "train", inputs, config, produce)
+
+
+def _register_log(
+    workspace: Workspace, curve: Path, summary: dict, step: str, checkpoint_id: str, meta: dict
+) -> None:
+    """The loss curve (JSONL rows) and the run summary, as a `training_log` child of the checkpoint."""
+    rows = [json.loads(line) for line in curve.read_text().splitlines() if line.strip()]
+    workspace.api.register_json(
+        {"summary": summary, "curve": rows}, kind="training_log", name=f"{step} log",
+        parents=[(checkpoint_id, "log_of")], **meta,
+    )
+
+
+@pipeline_task("train")
+def train_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_train(Workspace(home), step, inputs, config)

@@ -1,0 +1,119 @@
+"""Steps: extract a capability vector (with its statistics) and merge vectors into a base checkpoint."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from capvector_core import vector_ops
+from capvector_core.policy import build_policy, load_policy_weights, read_policy_config, save_policy
+from capvector_core.vector_ops import VectorStat, group_of
+from tasks.caching import cached_step
+from tasks.prefect_task import pipeline_task
+from tasks.workspace import Workspace, provenance
+
+
+class VectorFilter(BaseModel):
+    """Which tensors a vector covers (glob patterns on tensor names); empty means all."""
+
+    model_config = ConfigDict(extra="forbid")
+    include: list[str] | None = None
+    exclude: list[str] | None = None
+
+
+class MergeConfig(VectorFilter):
+    alpha: float = Field(1.1, description="θ_meta = θ_pt + α·γ (the paper's best α is 1.1)")
+
+
+def stat_rows(stats: list[VectorStat], group_depth: int = 2) -> list[dict[str, Any]]:
+    """core `VectorStat` rows -> the catalogue's per-tensor rows (group rows keep their level)."""
+    rows = []
+    for s in stats:
+        rows.append(
+            {
+                "tensor": s.name,
+                "group": group_of(s.name, group_depth) if s.level == "tensor" else s.name,
+                "numel": s.numel,
+                "l2": s.l2,
+                "rel_norm": s.relative_norm,
+                "cosine_ref": s.cosine,
+                "sign_agreement": s.sign_agreement,
+                "level": s.level,
+            }
+        )
+    return rows
+
+
+def run_extract(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    """γ = minuend − subtrahend; with a `base` input, statistics against θ_pt and θ_ft − θ_pt."""
+    flt = VectorFilter.model_validate(config)
+    for role in ("minuend", "subtrahend"):
+        if role not in inputs:
+            raise ValueError(f"step {step!r}: extract needs a {role!r} input")
+
+    def produce(key: str) -> str:
+        minuend, subtrahend = workspace.path(inputs["minuend"]), workspace.path(inputs["subtrahend"])
+        base = workspace.path(inputs["base"]) if "base" in inputs else None
+        meta = provenance()
+        with workspace.scratch() as tmp:
+            out = vector_ops.extract(
+                minuend, subtrahend, tmp / "vector.safetensors", flt.include, flt.exclude, base=base
+            )
+            parents = [(inputs["minuend"], "minuend"), (inputs["subtrahend"], "subtrahend")]
+            if "base" in inputs:
+                parents.append((inputs["base"], "base"))
+            record = workspace.api.register_file(
+                out, kind="vector", name=step,
+                config={"formula": "minuend - subtrahend", **flt.model_dump(), "cache_key": key},
+                parents=parents, **meta,
+            )
+            reference = None
+            if base is not None:
+                reference = vector_ops.extract(subtrahend, base, tmp / "task_vector.safetensors", base=base)
+            stats = vector_ops.stats(out, base=base, reference_vector=reference)
+        workspace.api.register_vector_stats(record.id, stat_rows(stats), **meta)
+        return record.id
+
+    return cached_step(workspace, "extract_vector", inputs, config, produce)
+
+
+def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    """θ = base + α·vector, re-saved as a policy checkpoint (so it loads like any other)."""
+    cfg = MergeConfig.model_validate(config)
+    for role in ("base", "vector"):
+        if role not in inputs:
+            raise ValueError(f"step {step!r}: merge needs a {role!r} input")
+
+    def produce(key: str) -> str:
+        base = workspace.path(inputs["base"])
+        with workspace.scratch() as tmp:
+            merged = vector_ops.merge(
+                base, [(workspace.path(inputs["vector"]), cfg.alpha)], tmp / "merged.safetensors",
+                cfg.include, cfg.exclude,
+            )
+            model = build_policy(read_policy_config(base), device="cpu")
+            load_policy_weights(model, merged)
+            formula = {"formula": "base + alpha * vector", "alpha": cfg.alpha}
+            out = save_policy(model, tmp / "model.safetensors", {"capvector.merge": json.dumps(formula)})
+            record = workspace.api.register_file(
+                out, kind="checkpoint", name=step,
+                config={**formula, **cfg.model_dump(), "cache_key": key},
+                parents=[(inputs["base"], "base"),
+                         (inputs["vector"], "vector", {"alpha": cfg.alpha})],
+                **provenance(),
+            )
+        return record.id
+
+    return cached_step(workspace, "merge", inputs, config, produce)
+
+
+@pipeline_task("extract_vector")
+def extract_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_extract(Workspace(home), step, inputs, config)
+
+
+@pipeline_task("merge")
+def merge_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_merge(Workspace(home), step, inputs, config)
