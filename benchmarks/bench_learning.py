@@ -37,14 +37,14 @@ TASKS = [
     "door-open-v3",
 ]
 ROOT = Path(__file__).resolve().parent
-WORK = ROOT / "_work" / "learning"
+WORK = ROOT / "_work" / "learning"  # --work-dir overrides (benchmarks/_work is shared with other jobs)
 RESULTS = ROOT / "results"
 
 
-def demos(mode: str, episodes: int, image_size: int) -> tuple[DemoDataset, float]:
+def demos(mode: str, episodes: int, image_size: int, work: Path = WORK) -> tuple[DemoDataset, float]:
     config = DemoConfig(tasks=TASKS, episodes_per_task=episodes, obs_mode=mode, image_size=image_size)
     key = hashlib.sha256(config.model_dump_json(exclude={"workers"}).encode()).hexdigest()[:12]
-    path = WORK / f"demos-{mode}-{key}"
+    path = work / f"demos-{mode}-{key}"
     if path.exists():
         return DemoDataset.load(path), 0.0
     start = time.perf_counter()
@@ -71,12 +71,13 @@ def main() -> None:
     ap.add_argument(
         "--threads", type=int, default=1, help="torch threads (1 copes best with other jobs on the cores)"
     )
+    ap.add_argument("--work-dir", type=Path, default=WORK, help="demo cache and run directories")
     ap.add_argument("--tag", default="", help="suffix for the run directory and result entry")
     ap.add_argument("--fresh", action="store_true", help="delete the run directory first (no resume)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    dataset, demo_seconds = demos(args.mode, args.episodes, args.image_size)
+    dataset, demo_seconds = demos(args.mode, args.episodes, args.image_size, args.work_dir)
     print(
         f"demos: {len(dataset)} steps, {dataset.meta.n_episodes} episodes, failures {dataset.meta.failures}"
     )
@@ -100,13 +101,13 @@ def main() -> None:
         num_threads=args.threads,
     )
     name = f"{args.mode}{'-' + args.tag if args.tag else ''}"
-    run_dir = WORK / f"run-{name}"
+    run_dir = args.work_dir / f"run-{name}"
     if args.fresh:
         shutil.rmtree(run_dir, ignore_errors=True)
     torch.manual_seed(args.seed)
     policy = VLAPolicy(policy_config)
     result = train(policy, dataset, train_config, run_dir)
-    train_seconds = json.loads(result.loss_curve_path.read_text().splitlines()[-1])["time"]
+    train_seconds = result.train_seconds
     print(f"trained {args.steps} steps in {train_seconds:.0f}s, final loss {result.final_loss:.4f}")
 
     eval_config = EvalConfig(

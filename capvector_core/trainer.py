@@ -92,6 +92,7 @@ class TrainResult(BaseModel):
     loss_curve_path: Path
     steps: int
     resumed_from_step: int
+    train_seconds: float  # over all invocations of this run (the loop only, checkpoints included)
     steps_per_s: float
     samples_per_s: float
     final_loss: float
@@ -449,6 +450,7 @@ def train(
         loss_curve_path=curve_path,
         steps=config.steps,
         resumed_from_step=start,
+        train_seconds=run.train_seconds,
         steps_per_s=done_steps / elapsed if done_steps and elapsed > 0 else 0.0,
         samples_per_s=done_steps * config.batch_size / elapsed if done_steps and elapsed > 0 else 0.0,
         final_loss=last_loss,
