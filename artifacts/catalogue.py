@@ -8,6 +8,7 @@ exponential backoff and jitter up to a bounded total wait, then reported as Cata
 
 import json
 import random
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -33,6 +34,16 @@ from artifacts.schema import DATA_TABLES, MIGRATIONS, check_version, migrate
 EVALUATION_KIND = "evaluation"
 VECTOR_STATS_KIND = "vector_stats"
 T = TypeVar("T")
+# DuckDB refuses a second connection to a file that one thread of this process holds with another
+# configuration (read-only vs read-write), so threads of one process take turns per file.
+_PROCESS_LOCKS: dict[str, threading.Lock] = {}
+_PROCESS_LOCKS_GUARD = threading.Lock()
+
+
+def _process_lock(path: Path) -> threading.Lock:
+    key = str(path.resolve())
+    with _PROCESS_LOCKS_GUARD:
+        return _PROCESS_LOCKS.setdefault(key, threading.Lock())
 Doc = EvaluationDoc | VectorStatsDoc | None
 
 # Writes are a few rows: one thread halves the cost of opening the file (no worker pool to start).
@@ -210,9 +221,11 @@ class Catalogue:
         """Run `work` (connect → transaction → close), retrying lock and write conflicts with backoff."""
         deadline = time.monotonic() + self.max_wait_s
         delay = 0.005
+        lock = _process_lock(self.path)
         while True:
             try:
-                return work()
+                with lock:
+                    return work()
             except (duckdb.IOException, duckdb.TransactionException) as e:
                 if isinstance(e, duckdb.IOException) and "lock" not in str(e).lower():
                     raise

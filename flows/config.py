@@ -114,7 +114,9 @@ class PipelineConfig(BaseModel):
     alpha: float = 1.1
     orthogonal: OrthogonalSettings = OrthogonalSettings()
     lora: LoraConfig = LoraConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"])
-    lora_sp: LoraSPConfig = LoraSPConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"], bank_size=32)
+    lora_sp: LoraSPConfig = LoraSPConfig(
+        target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"], bank_size=32
+    )
     arms: list[ArmName] = Field(default_factory=lambda: ["sft", "aux", "capvector"])
     seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
     evaluation: EvalSettings = EvalSettings()
@@ -143,8 +145,12 @@ class PipelineConfig(BaseModel):
             "downstream": self.data.episodes_downstream,
         }[split]
         return DemoConfig(
-            tasks=getattr(self.splits, split), episodes_per_task=episodes, obs_mode=self.data.obs_mode,
-            camera=self.data.camera, image_size=self.data.image_size, horizon=self.data.horizon,
+            tasks=getattr(self.splits, split),
+            episodes_per_task=episodes,
+            obs_mode=self.data.obs_mode,
+            camera=self.data.camera,
+            image_size=self.data.image_size,
+            horizon=self.data.horizon,
             workers=self.data.workers,
         )
 
@@ -177,11 +183,16 @@ class PipelineConfig(BaseModel):
         return EvalConfig(
             tasks=self.splits.downstream,
             episodes_per_task=(
-                self.evaluation.validation_episodes_per_task if validation else self.evaluation.episodes_per_task
+                self.evaluation.validation_episodes_per_task
+                if validation
+                else self.evaluation.episodes_per_task
             ),
             seed_base=VALIDATION_SEED_BASE if validation else EVAL_SEED_BASE,
-            horizon=self.evaluation.horizon, obs_mode=self.data.obs_mode, camera=self.data.camera,
-            image_size=self.data.image_size, execute_steps=self.evaluation.execute_steps,
+            horizon=self.evaluation.horizon,
+            obs_mode=self.data.obs_mode,
+            camera=self.data.camera,
+            image_size=self.data.image_size,
+            execute_steps=self.evaluation.execute_steps,
             batch_size=self.evaluation.batch_size,
         )
 

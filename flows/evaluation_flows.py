@@ -63,7 +63,9 @@ def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[d
     if selected.empty:
         return []
     checkpoint_ids = [str(x) for x in selected.iloc[:, 0].dropna().unique()]
-    with recorded_run(workspace, "reevaluate", {"selection_sql": selection_sql, "checkpoints": checkpoint_ids}):
+    with recorded_run(
+        workspace, "reevaluate", {"selection_sql": selection_sql, "checkpoints": checkpoint_ids}
+    ):
         jobs = [(cid, cfg) for cid in checkpoint_ids for cfg in _previous_protocols(workspace, cid)]
         futures = [
             (cid, reevaluate_task.submit(home, f"reevaluate {cid[:12]}", {"checkpoint": cid}, cfg))
@@ -77,9 +79,17 @@ def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[d
             before = _latest_scores(workspace, cid, fingerprint, eval_id)
             for task_name, new in sorted(record.config["success_rates"].items()):
                 old = before.get(task_name)
-                changes.append({"checkpoint_id": cid, "task": task_name, "previous": old, "new": new,
-                                "changed": old is not None and abs(old - new) > 1e-9,
-                                "evaluation_id": eval_id, "fingerprint": fingerprint})
+                changes.append(
+                    {
+                        "checkpoint_id": cid,
+                        "task": task_name,
+                        "previous": old,
+                        "new": new,
+                        "changed": old is not None and abs(old - new) > 1e-9,
+                        "evaluation_id": eval_id,
+                        "fingerprint": fingerprint,
+                    }
+                )
         publish_markdown("reevaluation-summary", summary_markdown(changes), "scores before and after")
     return changes
 
@@ -88,5 +98,7 @@ def summary_markdown(changes: list[dict[str, Any]]) -> str:
     lines = ["| checkpoint | task | previous | new | changed |", "|---|---|---|---|---|"]
     for c in changes:
         prev = "-" if c["previous"] is None else f"{c['previous']:.3f}"
-        lines.append(f"| {c['checkpoint_id'][:12]} | {c['task']} | {prev} | {c['new']:.3f} | {c['changed']} |")
+        lines.append(
+            f"| {c['checkpoint_id'][:12]} | {c['task']} | {prev} | {c['new']:.3f} | {c['changed']} |"
+        )
     return "\n".join(lines) + "\n"

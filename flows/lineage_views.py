@@ -22,7 +22,9 @@ def as_tree(root: LineageRow | None, rows: list[LineageRow], root_id: str) -> st
         kids = children.get(node, [])
         for i, kid in enumerate(kids):
             last = i == len(kids) - 1
-            lines.append(f"{indent}{'└── ' if last else '├── '}({kid.roles[-1]}) {_label(kid.id, kid.kind, kid.name)}")
+            lines.append(
+                f"{indent}{'└── ' if last else '├── '}({kid.roles[-1]}) {_label(kid.id, kid.kind, kid.name)}"
+            )
             walk(kid.id, indent + ("    " if last else "│   "))
 
     walk(root_id, "")

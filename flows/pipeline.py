@@ -32,30 +32,54 @@ def submit_vector_stage(home: str, config: PipelineConfig) -> dict[str, Any]:
         split: collect_demos_task.submit(home, f"demos {split}", {}, _dump(config.demo_config(split)))
         for split in ("pretrain", "extraction", "downstream")
     }
-    pretrained = train_task.submit(home, "pretrain θ_pt", {"data": data["pretrain"]}, _dump(config.pretrain_step()))
+    pretrained = train_task.submit(
+        home, "pretrain θ_pt", {"data": data["pretrain"]}, _dump(config.pretrain_step())
+    )
     extraction_inputs = {"data": data["extraction"], "init": pretrained}
-    standard = train_task.submit(home, "standard SFT θ_ft", extraction_inputs, _dump(config.extraction_step(False)))
-    auxiliary = train_task.submit(home, "auxiliary SFT θ_ao", extraction_inputs, _dump(config.extraction_step(True)))
+    standard = train_task.submit(
+        home, "standard SFT θ_ft", extraction_inputs, _dump(config.extraction_step(False))
+    )
+    auxiliary = train_task.submit(
+        home, "auxiliary SFT θ_ao", extraction_inputs, _dump(config.extraction_step(True))
+    )
     vector = extract_task.submit(
-        home, "capability vector γ", {"minuend": auxiliary, "subtrahend": standard, "base": pretrained},
+        home,
+        "capability vector γ",
+        {"minuend": auxiliary, "subtrahend": standard, "base": pretrained},
         _dump(config.vector),
     )
     meta = merge_task.submit(
-        home, f"merge θ_meta (α={config.alpha})", {"base": pretrained, "vector": vector},
+        home,
+        f"merge θ_meta (α={config.alpha})",
+        {"base": pretrained, "vector": vector},
         _dump(config.merge_config()),
     )
-    return {"data": data, "pretrained": pretrained, "standard": standard, "auxiliary": auxiliary,
-            "vector": vector, "meta": meta}
+    return {
+        "data": data,
+        "pretrained": pretrained,
+        "standard": standard,
+        "auxiliary": auxiliary,
+        "vector": vector,
+        "meta": meta,
+    }
 
 
 def submit_arm(
-    home: str, config: PipelineConfig, stage: dict[str, Any], arm: str, seed: int,
-    meta: Any = None, orthogonal_weight: float | None = None, label: str | None = None,
+    home: str,
+    config: PipelineConfig,
+    stage: dict[str, Any],
+    arm: str,
+    seed: int,
+    meta: Any = None,
+    orthogonal_weight: float | None = None,
+    label: str | None = None,
 ) -> Any:
     """Future of one downstream checkpoint (arm × seed)."""
     spec = ARMS[arm]
-    inputs = {"data": stage["data"]["downstream"],
-              "init": (meta or stage["meta"]) if spec.init == "meta" else stage["pretrained"]}
+    inputs = {
+        "data": stage["data"]["downstream"],
+        "init": (meta or stage["meta"]) if spec.init == "meta" else stage["pretrained"],
+    }
     if spec.orthogonal:
         inputs["vector"] = stage["vector"]
     step_config = config.downstream_step(arm, seed, orthogonal_weight)
@@ -71,7 +95,9 @@ def pipeline(config: dict[str, Any], home: str) -> dict[str, Any]:
         stage = submit_vector_stage(home, cfg)
         eval_config = _dump(cfg.eval_config())
         checkpoints = {
-            f"{arm}/seed{seed}": submit_arm(home, cfg, stage, arm, seed) for arm in cfg.arms for seed in cfg.seeds
+            f"{arm}/seed{seed}": submit_arm(home, cfg, stage, arm, seed)
+            for arm in cfg.arms
+            for seed in cfg.seeds
         }
         evaluations = {
             label: evaluate_task.submit(home, f"evaluate {label}", {"checkpoint": ckpt}, eval_config)

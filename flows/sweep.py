@@ -30,25 +30,42 @@ def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
         cells = []
         for alpha in cfg.sweep.alphas:
             meta = merge_task.submit(
-                home, f"merge θ_meta (α={alpha})", {"base": stage["pretrained"], "vector": stage["vector"]},
+                home,
+                f"merge θ_meta (α={alpha})",
+                {"base": stage["pretrained"], "vector": stage["vector"]},
                 cfg.merge_config(alpha).model_dump(mode="json"),
             )
             for lam in lambdas:
                 label = f"{arm} α={alpha} λ={lam}"
-                checkpoint = submit_arm(home, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label)
-                evaluation = evaluate_task.submit(home, f"validate {label}", {"checkpoint": checkpoint}, validation)
-                cells.append({"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation})
+                checkpoint = submit_arm(
+                    home, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label
+                )
+                evaluation = evaluate_task.submit(
+                    home, f"validate {label}", {"checkpoint": checkpoint}, validation
+                )
+                cells.append(
+                    {"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation}
+                )
         rows = []
         for cell in cells:
             eval_id = cell["evaluation"].result()
-            rows.append({"alpha": cell["alpha"], "lambda": cell["lambda"], "checkpoint_id": cell["checkpoint"].result(),
-                         "evaluation_id": eval_id,
-                         "validation_success": workspace.api.get(eval_id).config["mean_success"]})
+            rows.append(
+                {
+                    "alpha": cell["alpha"],
+                    "lambda": cell["lambda"],
+                    "checkpoint_id": cell["checkpoint"].result(),
+                    "evaluation_id": eval_id,
+                    "validation_success": workspace.api.get(eval_id).config["mean_success"],
+                }
+            )
         best = max(rows, key=lambda r: r["validation_success"])
         doc = {"arm": arm, "seed": seed, "grid": rows, "best": best, "selected_on": "validation seeds"}
         record = workspace.api.register_json(
-            doc, kind="sweep", name=f"sweep {cfg.name}",
-            parents=[(e, "evaluation") for e in dict.fromkeys(r["evaluation_id"] for r in rows)], **provenance(),
+            doc,
+            kind="sweep",
+            name=f"sweep {cfg.name}",
+            parents=[(e, "evaluation") for e in dict.fromkeys(r["evaluation_id"] for r in rows)],
+            **provenance(),
         )
         publish_markdown(f"{cfg.name}-sweep", sweep_markdown(doc), "α × λ sweep on validation seeds")
     return {"sweep": record.id, **doc}

@@ -22,8 +22,12 @@ def run_collect_demos(workspace: Workspace, step: str, config: dict[str, Any]) -
                 path,
                 kind="dataset",
                 name=step,
-                config={"demo": demo_config.model_dump(), "cache_key": key,
-                        "failures": dataset.meta.failures, "n_steps": dataset.meta.n_steps},
+                config={
+                    "demo": demo_config.model_dump(),
+                    "cache_key": key,
+                    "failures": dataset.meta.failures,
+                    "n_steps": dataset.meta.n_steps,
+                },
                 **provenance(),
             )
         return record.id

@@ -21,7 +21,13 @@ def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, A
         "fingerprint": result.fingerprint,
         "library_versions": {**versions, **result.versions},
         "episodes": [
-            {"task": e.task, "seed": e.seed, "success": e.success, "steps": e.steps, "return": e.episode_return}
+            {
+                "task": e.task,
+                "seed": e.seed,
+                "success": e.success,
+                "steps": e.steps,
+                "return": e.episode_return,
+            }
             for e in result.episodes
         ],
     }
@@ -59,7 +65,10 @@ def run_evaluate(workspace: Workspace, step: str, inputs: dict[str, str], config
         raise ValueError(f"step {step!r}: evaluate needs a 'checkpoint' input")
     EvalConfig.model_validate(config)  # fail before any cache lookup on a bad protocol
     return cached_step(
-        workspace, "evaluate", inputs, config,
+        workspace,
+        "evaluate",
+        inputs,
+        config,
         lambda _key: evaluate_checkpoint(workspace, step, inputs["checkpoint"], config),
     )
 

@@ -67,7 +67,11 @@ def markdown_table(table: dict[str, Any]) -> str:
     for arm, row in arms.items():
         cells = [arm, _pct(row["overall"])] + [_pct(row["per_task"][t]) for t in tasks]
         ms = row["ms_per_step"]
-        cells += [f"{ms:.1f}" if ms else "-", f"{row['trainable_parameters'] or '-'}", str(row["overall"]["n"])]
+        cells += [
+            f"{ms:.1f}" if ms else "-",
+            f"{row['trainable_parameters'] or '-'}",
+            str(row["overall"]["n"]),
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + f"\n\nProtocol fingerprint: `{table['fingerprint']}`\n"
 
@@ -81,8 +85,12 @@ def run_report(workspace: Workspace, step: str, inputs: dict[str, str], config: 
         table = comparison(workspace, inputs)
         table["markdown"] = markdown_table(table)
         record = workspace.api.register_json(
-            table, kind="report", name=step, config={**config, "cache_key": key},
-            parents=[(eval_id, "evaluation") for eval_id in dict.fromkeys(inputs.values())], **provenance(),
+            table,
+            kind="report",
+            name=step,
+            config={**config, "cache_key": key},
+            parents=[(eval_id, "evaluation") for eval_id in dict.fromkeys(inputs.values())],
+            **provenance(),
         )
         return record.id
 

@@ -92,7 +92,9 @@ def _orthogonal(
 def _calibration_batches(model: VLAPolicy, dataset: DemoDataset, seed: int) -> list[dict[str, torch.Tensor]]:
     """Batches from the training data for LoRA-SP's dense merge (its mean score vector)."""
     cfg = model.config
-    tokens = tokenizer.encode_batch(list(dataset.meta.instructions), cfg.vocab_size, cfg.max_instruction_tokens)
+    tokens = tokenizer.encode_batch(
+        list(dataset.meta.instructions), cfg.vocab_size, cfg.max_instruction_tokens
+    )
     generator = torch.Generator().manual_seed(seed)
     obs_key = "image" if cfg.obs_mode == "pixels" else "state"
     n = dataset.tensors["action"].shape[0]
@@ -161,8 +163,12 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             _register_log(workspace, result.loss_curve_path, summary, step, checkpoint.id, meta)
             if adapter_dir is not None:
                 workspace.api.register_dir(
-                    adapter_dir, kind="adapter", name=f"{step} adapter", config={"adapter": cfg.adapter},
-                    parents=[(checkpoint.id, "adapter_of")], **meta,
+                    adapter_dir,
+                    kind="adapter",
+                    name=f"{step} adapter",
+                    config={"adapter": cfg.adapter},
+                    parents=[(checkpoint.id, "adapter_of")],
+                    **meta,
                 )
         workspace.finish_run_dir(key)
         return checkpoint.id
@@ -176,8 +182,11 @@ def _register_log(
     """The loss curve (JSONL rows) and the run summary, as a `training_log` child of the checkpoint."""
     rows = [json.loads(line) for line in curve.read_text().splitlines() if line.strip()]
     workspace.api.register_json(
-        {"summary": summary, "curve": rows}, kind="training_log", name=f"{step} log",
-        parents=[(checkpoint_id, "log_of")], **meta,
+        {"summary": summary, "curve": rows},
+        kind="training_log",
+        name=f"{step} log",
+        parents=[(checkpoint_id, "log_of")],
+        **meta,
     )
 
 

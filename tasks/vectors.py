@@ -65,9 +65,12 @@ def run_extract(workspace: Workspace, step: str, inputs: dict[str, str], config:
             if "base" in inputs:
                 parents.append((inputs["base"], "base"))
             record = workspace.api.register_file(
-                out, kind="vector", name=step,
+                out,
+                kind="vector",
+                name=step,
                 config={"formula": "minuend - subtrahend", **flt.model_dump(), "cache_key": key},
-                parents=parents, **meta,
+                parents=parents,
+                **meta,
             )
             reference = None
             if base is not None:
@@ -90,18 +93,22 @@ def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: d
         base = workspace.path(inputs["base"])
         with workspace.scratch() as tmp:
             merged = vector_ops.merge(
-                base, [(workspace.path(inputs["vector"]), cfg.alpha)], tmp / "merged.safetensors",
-                cfg.include, cfg.exclude,
+                base,
+                [(workspace.path(inputs["vector"]), cfg.alpha)],
+                tmp / "merged.safetensors",
+                cfg.include,
+                cfg.exclude,
             )
             model = build_policy(read_policy_config(base), device="cpu")
             load_policy_weights(model, merged)
             formula = {"formula": "base + alpha * vector", "alpha": cfg.alpha}
             out = save_policy(model, tmp / "model.safetensors", {"capvector.merge": json.dumps(formula)})
             record = workspace.api.register_file(
-                out, kind="checkpoint", name=step,
+                out,
+                kind="checkpoint",
+                name=step,
                 config={**formula, **cfg.model_dump(), "cache_key": key},
-                parents=[(inputs["base"], "base"),
-                         (inputs["vector"], "vector", {"alpha": cfg.alpha})],
+                parents=[(inputs["base"], "base"), (inputs["vector"], "vector", {"alpha": cfg.alpha})],
                 **provenance(),
             )
         return record.id

@@ -1,0 +1,474 @@
+"""The `capvector` command line: run the recipe, inspect lineage and scores, operate on vectors."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from artifacts.errors import ArtifactError
+from flows.lineage_views import as_mermaid, as_tree
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, help=__doc__)
+artifacts_app = typer.Typer(no_args_is_help=True, help="List and show artifacts.")
+vector_app = typer.Typer(
+    no_args_is_help=True, help="Capability-vector arithmetic on safetensors checkpoints."
+)
+app.add_typer(artifacts_app, name="artifacts")
+app.add_typer(vector_app, name="vector")
+console = Console()
+err = Console(stderr=True)
+
+HomeOption = Annotated[str | None, typer.Option("--home", help="capvector home (default: $CAPVECTOR_HOME)")]
+JsonOption = Annotated[bool, typer.Option("--json", help="print machine-readable JSON")]
+SetOption = Annotated[list[str] | None, typer.Option("--set", help="override a config key: a.b=value")]
+
+
+class State:
+    home: str | None = None
+
+
+@app.callback()
+def main_options(
+    home: Annotated[
+        str | None, typer.Option("--home", envvar="CAPVECTOR_HOME", help="capvector home")
+    ] = None,
+) -> None:
+    """capvector: capability vectors for VLA policies on Meta-World, with lineage."""
+    State.home = home
+
+
+def _home(home: str | None) -> str:
+    from artifacts.home import default_home
+
+    return home or State.home or default_home()
+
+
+def _workspace(home: str | None):
+    from tasks.workspace import Workspace
+
+    return Workspace(_home(home))
+
+
+def _print_json(data: Any) -> None:
+    console.print_json(json.dumps(data, default=str))
+
+
+def _preflight() -> None:
+    """Before any flow: a configured but unreachable Prefect server is an error, not a hang."""
+    from flows.schedules import check_server_reachable
+
+    check_server_reachable()
+
+
+def _runner(runner: str, workers: int):
+    if runner == "thread":
+        return None
+    if runner == "dask":
+        from prefect_dask import DaskTaskRunner
+
+        return DaskTaskRunner(
+            cluster_kwargs={
+                "n_workers": workers,
+                "threads_per_worker": 1,
+                "processes": True,
+                "dashboard_address": None,
+            }
+        )
+    raise typer.BadParameter(f"unknown runner {runner!r}; use 'thread' or 'dask'")
+
+
+# ---------------------------------------------------------------------------- flows
+@app.command()
+def run(
+    preset: Annotated[str, typer.Option(help="smoke | quick | paper | path to a YAML file")] = "quick",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Run the whole recipe (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> eval -> report."""
+    from flows.config import load_config
+    from flows.pipeline import pipeline
+
+    _preflight()
+    config = load_config(preset, overrides)
+    home = _home(home)
+    err.print(f"[bold]capvector run[/] preset={preset} home={home}")
+    ids = pipeline(config.model_dump(mode="json"), home)
+    if as_json:
+        _print_json(ids)
+        return
+    table = _workspace(home).api.store.open_json(ids["report"])
+    console.print(table["markdown"])
+    console.print(f"report: {ids['report']}   (capvector report {ids['report'][:12]})")
+
+
+@app.command()
+def evaluate(
+    checkpoints: Annotated[list[str], typer.Argument(help="checkpoint artifact ids (or unique prefixes)")],
+    tasks: Annotated[str, typer.Option(help="comma-separated Meta-World task names")],
+    episodes: Annotated[int, typer.Option(help="episodes (goal variations) per task")] = 20,
+    horizon: int = 500,
+    execute_steps: Annotated[int, typer.Option(help="actions executed per predicted chunk")] = 1,
+    obs_mode: str = "state",
+    runner: Annotated[str, typer.Option(help="thread | dask")] = "thread",
+    workers: int = 2,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Evaluate checkpoints on any tasks under one protocol (test seeds, disjoint from demo seeds)."""
+    from capvector_core.evaluation import EvalConfig
+    from flows.evaluation_flows import evaluate_flow
+
+    _preflight()
+    config = EvalConfig(
+        tasks=[t.strip() for t in tasks.split(",") if t.strip()],
+        episodes_per_task=episodes,
+        horizon=horizon,
+        execute_steps=execute_steps,
+        obs_mode=obs_mode,
+    )
+    flow_fn = evaluate_flow
+    task_runner = _runner(runner, workers)
+    if task_runner is not None:
+        flow_fn = evaluate_flow.with_options(task_runner=task_runner)
+    result = flow_fn(_home(home), checkpoints, config.model_dump(mode="json"))
+    ws = _workspace(home)
+    rows = [
+        {
+            "checkpoint": c,
+            "evaluation": e,
+            "mean_success": ws.api.get(e).config["mean_success"],
+            "success_rates": ws.api.get(e).config["success_rates"],
+        }
+        for c, e in result.items()
+    ]
+    if as_json:
+        _print_json(rows)
+        return
+    table = Table("checkpoint", "evaluation", "mean success", "per task")
+    for r in rows:
+        per_task = ", ".join(f"{t}: {100 * v:.0f}%" for t, v in r["success_rates"].items())
+        table.add_row(r["checkpoint"][:12], r["evaluation"][:12], f"{100 * r['mean_success']:.1f}%", per_task)
+    console.print(table)
+
+
+@app.command()
+def reevaluate(
+    query: Annotated[
+        str | None, typer.Option(help="read-only SQL whose first column is checkpoint ids")
+    ] = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Re-run the evaluations of the selected checkpoints under the installed library versions."""
+    from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
+
+    _preflight()
+    changes = reevaluate_flow(_home(home), query or DEFAULT_SELECTION)
+    if as_json:
+        _print_json(changes)
+    else:
+        console.print(summary_markdown(changes) if changes else "nothing selected")
+
+
+@app.command()
+def sweep(
+    preset: str = "quick",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Grid over α and λ for the CapVector arm, picked on validation seeds (never the test seeds)."""
+    from flows.config import load_config
+    from flows.sweep import sweep_flow, sweep_markdown
+
+    _preflight()
+    config = load_config(preset, overrides)
+    result = sweep_flow(config.model_dump(mode="json"), _home(home))
+    if as_json:
+        _print_json(result)
+    else:
+        console.print(sweep_markdown(result))
+        console.print(
+            f"best: α={result['best']['alpha']} λ={result['best']['lambda']}  (sweep {result['sweep']})"
+        )
+
+
+@app.command()
+def schedule(
+    cron: Annotated[str, typer.Option(help="cron expression, e.g. '0 3 * * *'")],
+    query: Annotated[str | None, typer.Option(help="selection SQL (first column: checkpoint ids)")] = None,
+    name: str = "scheduled-reevaluation",
+    home: HomeOption = None,
+    check: Annotated[bool, typer.Option("--check", help="validate and print, do not serve")] = False,
+) -> None:
+    """Serve the `reevaluate` deployment on a cron (needs PREFECT_API_URL for a persistent server)."""
+    from flows.schedules import build_deployment, serve_deployment
+
+    deployment = build_deployment(cron, _home(home), query, name)
+    if check:
+        console.print(f"deployment {name!r}: cron {cron!r}, home {_home(home)}")
+        return
+    serve_deployment(deployment)
+
+
+# ---------------------------------------------------------------------------- catalogue
+@artifacts_app.command("list")
+def artifacts_list(
+    kind: Annotated[str | None, typer.Option(help="only this kind")] = None,
+    limit: int = 50,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Artifacts in the catalogue, newest first."""
+    ws = _workspace(home)
+    sql = "SELECT id, kind, name, size_bytes, created_at FROM artifacts"
+    params: list[Any] = []
+    if kind:
+        sql += " WHERE kind = ?"
+        params.append(kind)
+    frame = ws.api.query(sql + f" ORDER BY created_at DESC LIMIT {int(limit)}", params)
+    if as_json:
+        _print_json(frame.to_dict(orient="records"))
+        return
+    table = Table("id", "kind", "name", "size", "created")
+    for r in frame.itertuples():
+        table.add_row(r.id[:12], r.kind, r.name, f"{r.size_bytes:,}", str(r.created_at)[:19])
+    console.print(table)
+
+
+@artifacts_app.command("show")
+def artifacts_show(artifact_id: str, home: HomeOption = None) -> None:
+    """The full record of one artifact (its sidecar: config, parents, versions, runs)."""
+    _print_json(_workspace(home).api.get(artifact_id).model_dump(mode="json"))
+
+
+@app.command()
+def lineage(
+    artifact_id: str,
+    descendants: Annotated[bool, typer.Option("--descendants", help="what descends from it")] = False,
+    fmt: Annotated[str, typer.Option("--format", help="tree | json | mermaid")] = "tree",
+    depth: Annotated[int | None, typer.Option(help="maximum depth")] = None,
+    home: HomeOption = None,
+) -> None:
+    """Ancestors (default) or descendants of an artifact, with the role of every edge."""
+    ws = _workspace(home)
+    record = ws.api.get(artifact_id)
+    rows = (ws.api.descendants if descendants else ws.api.ancestors)(record.id, depth)
+    if fmt == "json":
+        _print_json([r.model_dump() for r in rows])
+    elif fmt == "mermaid":
+        console.print(as_mermaid(rows, record.id, ancestors=not descendants), markup=False)
+    elif fmt == "tree":
+        root = next((r for r in rows if r.depth == 0), None)
+        console.print(as_tree(root, rows, record.id), markup=False, highlight=False)
+    else:
+        raise typer.BadParameter(f"unknown format {fmt!r}; use tree, json or mermaid")
+
+
+@app.command()
+def scores(
+    artifact_id: str,
+    fingerprint: Annotated[str | None, typer.Option(help="only this protocol")] = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Per-task scores of the artifact and everything descended from it."""
+    rows = _workspace(home).api.scores(artifact_id, fingerprint)
+    if as_json:
+        _print_json([r.model_dump(mode="json") for r in rows])
+        return
+    table = Table("checkpoint", "name", "depth", "task", "success", "episodes", "protocol", "evaluated")
+    for r in rows:
+        table.add_row(
+            r.checkpoint_id[:12],
+            r.checkpoint_name or "",
+            str(r.depth),
+            r.task,
+            f"{100 * r.success_rate:.1f}%",
+            str(r.n_episodes),
+            r.fingerprint[:12],
+            str(r.evaluated_at)[:19],
+        )
+    console.print(table)
+
+
+@app.command()
+def compare(
+    checkpoints: Annotated[list[str], typer.Argument(help="checkpoint ids to compare")],
+    fingerprint: Annotated[str | None, typer.Option(help="protocol to compare under")] = None,
+    plot: Annotated[Path | None, typer.Option(help="write a PNG bar chart here")] = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Latest per-task scores of several checkpoints under one protocol, side by side."""
+    from flows.comparison import compare_checkpoints, plot_compare
+
+    ws = _workspace(home)
+    result = compare_checkpoints(ws, checkpoints, fingerprint)
+    if plot is not None:
+        plot_compare(result, plot)
+        err.print(f"wrote {plot}")
+    if as_json:
+        _print_json(result)
+        return
+    tasks = sorted({t for row in result["rows"] for t in row["success_rates"]})
+    table = Table("checkpoint", "name", *tasks, "mean")
+    for row in result["rows"]:
+        table.add_row(
+            row["checkpoint_id"][:12],
+            row["name"],
+            *[f"{100 * row['success_rates'].get(t, 0):.0f}%" for t in tasks],
+            f"{100 * row['mean']:.1f}%",
+        )
+    console.print(table)
+    console.print(f"protocol {result['fingerprint'][:12]}")
+
+
+@app.command()
+def report(
+    report_id: Annotated[str | None, typer.Argument(help="report artifact (default: the latest)")] = None,
+    out: Annotated[Path, typer.Option("-o", "--out", help="Markdown file to write")] = Path(
+        "docs/results.md"
+    ),
+    home: HomeOption = None,
+) -> None:
+    """Markdown + PNG figures: comparison, vector statistics per layer, training curves."""
+    from flows.report import latest_report_id, write_report
+
+    ws = _workspace(home)
+    path = write_report(ws, report_id or latest_report_id(ws), out)
+    console.print(f"wrote {path}")
+
+
+@app.command()
+def sql(query: str, home: HomeOption = None, as_json: JsonOption = False) -> None:
+    """Read-only SQL over the catalogue (anything but reading is refused)."""
+    frame = _workspace(home).api.query(query)
+    if as_json:
+        _print_json(frame.to_dict(orient="records"))
+    else:
+        console.print(frame.to_string(index=False), markup=False, highlight=False)
+
+
+@app.command("import")
+def import_checkpoint(
+    path: Path,
+    name: Annotated[str | None, typer.Option(help="name in the catalogue")] = None,
+    kind: str = "checkpoint",
+    home: HomeOption = None,
+) -> None:
+    """Register an outside safetensors checkpoint (file or sharded directory) in the store."""
+    from tasks.vector_commands import import_path
+
+    record = import_path(_workspace(home), path, kind, name)
+    console.print(record.id)
+
+
+# ---------------------------------------------------------------------------- vectors
+@vector_app.command("extract")
+def vector_extract(
+    minuend: Annotated[str, typer.Argument(help="θ_ao: file, sharded dir or artifact id")],
+    subtrahend: Annotated[str, typer.Argument(help="θ_ft: file, sharded dir or artifact id")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="*.safetensors = one file, else a sharded dir")],
+    base: Annotated[str | None, typer.Option(help="θ_pt the vector is meant for")] = None,
+    include: Annotated[list[str] | None, typer.Option(help="tensor-name globs to include")] = None,
+    exclude: Annotated[list[str] | None, typer.Option(help="tensor-name globs to exclude")] = None,
+    home: HomeOption = None,
+) -> None:
+    """γ = MINUEND − SUBTRAHEND, streamed tensor by tensor; registered in the catalogue."""
+    from tasks.vector_commands import extract_cli
+
+    record = extract_cli(_workspace(home), minuend, subtrahend, out, base, include, exclude)
+    console.print(f"{out}  (artifact {record.id})")
+
+
+@vector_app.command("merge")
+def vector_merge(
+    base: Annotated[str, typer.Argument(help="θ_pt: file, sharded dir or artifact id")],
+    vectors: Annotated[list[str], typer.Option("--vector", help="a vector (repeatable)")],
+    alphas: Annotated[list[float], typer.Option("--alpha", help="its coefficient (one per --vector)")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="*.safetensors = one file, else a sharded dir")],
+    include: Annotated[list[str] | None, typer.Option(help="tensor-name globs to merge into")] = None,
+    exclude: Annotated[list[str] | None, typer.Option(help="tensor-name globs to keep from base")] = None,
+    force: Annotated[bool, typer.Option(help="merge even if a vector names another base")] = False,
+    home: HomeOption = None,
+) -> None:
+    """BASE + Σ α_i·vector_i, streamed; registered in the catalogue with an edge per vector."""
+    from tasks.vector_commands import merge_cli
+
+    if len(vectors) != len(alphas):
+        raise typer.BadParameter(f"{len(vectors)} --vector but {len(alphas)} --alpha: give one α per vector")
+    record = merge_cli(
+        _workspace(home), base, list(zip(vectors, alphas, strict=True)), out, include, exclude, force
+    )
+    console.print(f"{out}  (artifact {record.id})")
+
+
+@vector_app.command("stats")
+def vector_stats(
+    vector: Annotated[str, typer.Argument(help="vector: file, sharded dir or artifact id")],
+    base: Annotated[str | None, typer.Option(help="θ_pt, for norms relative to the weights")] = None,
+    reference: Annotated[str | None, typer.Option(help="a reference vector, e.g. θ_ft − θ_pt")] = None,
+    level: Annotated[str, typer.Option(help="tensor | group | all")] = "group",
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Norms, relative norms, cosine and sign agreement per tensor / module group."""
+    from tasks.vector_commands import stats_cli
+
+    rows = stats_cli(_workspace(home), vector, base, reference)
+    if as_json:
+        _print_json([r.model_dump() for r in rows])
+        return
+    table = Table("name", "numel", "‖γ‖", "‖γ‖/‖θ‖", "cos(ref)", "sign agree")
+    for r in rows:
+        if r.level != level:
+            continue
+        table.add_row(
+            r.name,
+            f"{r.numel:,}",
+            f"{r.l2:.4g}",
+            _fmt(r.relative_norm),
+            _fmt(r.cosine),
+            _fmt(r.sign_agreement),
+        )
+    console.print(table)
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.4g}"
+
+
+def main() -> None:
+    """Console entry point: user errors print one clear line and exit 2, nothing half-written."""
+    from pydantic import ValidationError
+
+    from capvector_core.safetensors_io import CheckpointError
+
+    try:
+        app(standalone_mode=False)
+    except (ValueError, ArtifactError, CheckpointError, ValidationError, FileNotFoundError) as exc:
+        err.print(f"[bold red]error:[/] {exc}")
+        sys.exit(2)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        sys.exit(130)
+    except Exception as exc:  # click's usage errors
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        raise
+
+
+if __name__ == "__main__":
+    main()
