@@ -58,9 +58,9 @@ def make_dataset(obs_mode="state", episodes=4, length=20, image_size=16, privile
 
 
 def quick(**kw) -> TrainConfig:
-    base = dict(
-        steps=30, batch_size=16, lr=3e-3, warmup_steps=5, checkpoint_every=1000, log_every=5, device="cpu"
-    )
+    base = dict(steps=30, batch_size=16, lr=3e-3, warmup_steps=5, checkpoint_every=1000, log_every=5)
+    # one thread: tiny models gain nothing from two, and two crawl when other jobs share the cores
+    base.update(device="cpu", num_threads=1)
     return TrainConfig(**{**base, **kw})
 
 
