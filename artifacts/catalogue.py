@@ -44,6 +44,8 @@ def _process_lock(path: Path) -> threading.Lock:
     key = str(path.resolve())
     with _PROCESS_LOCKS_GUARD:
         return _PROCESS_LOCKS.setdefault(key, threading.Lock())
+
+
 Doc = EvaluationDoc | VectorStatsDoc | None
 
 # Writes are a few rows: one thread halves the cost of opening the file (no worker pool to start).
@@ -408,16 +410,18 @@ class Catalogue:
 
 
 def _with_paths(start: str, rows: list[tuple]) -> list[LineageRow]:
-    """Follow each row's `via` hops back to `start` to give its id path and role path."""
-    hop = {r[0]: (r[4], r[5]) for r in rows}
+    """Give each row its id path and role path from `start`, extending the path of the hop it came by.
+
+    Rows arrive ordered by depth, so that hop's path is always known already.
+    """
+    paths: dict[str, tuple[list[str], list[str]]] = {start: ([start], [])}
     out = []
-    for artifact_id, kind, name, depth, _, _ in rows:
-        path, roles, cur = [artifact_id], [], artifact_id
-        while cur != start:
-            cur, role = hop[cur]
-            path.append(cur)
-            roles.append(role)
+    for artifact_id, kind, name, depth, via, role in rows:
+        ids, roles = paths[via]
+        paths[artifact_id] = ids_roles = ([*ids, artifact_id], [*roles, role])
         out.append(
-            LineageRow(id=artifact_id, kind=kind, name=name, depth=depth, roles=roles[::-1], path=path[::-1])
+            LineageRow(
+                id=artifact_id, kind=kind, name=name, depth=depth, path=ids_roles[0], roles=ids_roles[1]
+            )
         )
     return out

@@ -24,8 +24,9 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from artifacts.api import ArtifactsAPI  # noqa: E402
-from artifacts.catalogue import Catalogue  # noqa: E402
+from artifacts.catalogue import ANCESTORS, DESCENDANTS, LINEAGE_SELECT, Catalogue  # noqa: E402
 from artifacts.hashing import hash_file  # noqa: E402
+from artifacts.readonly_sql import READ_ONLY_CONFIG  # noqa: E402
 from artifacts.store import ArtifactStore  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -77,6 +78,17 @@ def synthetic_graph(n: int, generations: int, seed: int = 0) -> tuple[list[str],
     return ids, edges
 
 
+def sql_only(cat: Catalogue, sql: str, start: str, repeat: int) -> float:
+    """The recursive query alone, on an already open connection (no open, no Python row objects)."""
+    con = duckdb.connect(str(cat.path), read_only=True, config=READ_ONLY_CONFIG)
+    try:
+        return median_time(
+            lambda: con.execute(sql, {"start": start, "max_depth": 2**31 - 1}).fetchall(), repeat
+        )
+    finally:
+        con.close()
+
+
 def bench_lineage(n: int, generations: int, repeat: int) -> dict:
     ids, edges = synthetic_graph(n, generations)
     cat = Catalogue(WORK / "lineage.duckdb")
@@ -114,6 +126,9 @@ def bench_lineage(n: int, generations: int, repeat: int) -> dict:
         "descendants_ms": 1000 * median_time(lambda: cat.descendants(root), repeat),
         "vectors_merged_ms": 1000 * median_time(lambda: cat.vectors_merged_into(leaf), repeat),
         "connect_only_ms": 1000 * median_time(lambda: cat._read(lambda c: None), repeat),
+        "ancestors_sql_open_connection_ms": 1000 * sql_only(cat, ANCESTORS + LINEAGE_SELECT, leaf, repeat),
+        "descendants_sql_open_connection_ms": 1000
+        * sql_only(cat, DESCENDANTS + LINEAGE_SELECT, root, repeat),
     }
 
 
@@ -222,6 +237,9 @@ def write_results(res: dict) -> None:
         f"{lin['descendants_ms']:.1f} ms | < 100 ms |",
         f"| vectors merged into a leaf | {lin['vectors_merged_ms']:.1f} ms | < 100 ms |",
         f"| of which: opening the catalogue read-only | {lin['connect_only_ms']:.1f} ms | |",
+        "| ancestors / descendants SQL alone, open connection | "
+        f"{lin['ancestors_sql_open_connection_ms']:.1f} / "
+        f"{lin['descendants_sql_open_connection_ms']:.1f} ms | |",
         f"| rebuild from a store of {rb['artifacts']} artifacts "
         f"({rb['rows']['eval_episodes']} episode rows) | "
         f"{rb['rebuild_s']:.2f} s | |",
@@ -248,7 +266,8 @@ def main() -> None:
     try:
         res = {
             "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-            f"duckdb {duckdb.__version__}, python {platform.python_version()}",
+            f"duckdb {duckdb.__version__}, python {platform.python_version()}, "
+            f"load average at start {os.getloadavg()[0]:.1f} (machine shared with other jobs)",
             "registration": bench_registration(50 if args.quick else 200),
             "lineage": bench_lineage(n_graph, 20, 7),
             "rebuild": bench_rebuild(n_graph, 20),
@@ -256,6 +275,7 @@ def main() -> None:
         }
     finally:
         shutil.rmtree(WORK, ignore_errors=True)
+    res["load_average_at_end"] = round(os.getloadavg()[0], 1)
     print(json.dumps(res, indent=2))
     if not args.quick:
         write_results(res)
