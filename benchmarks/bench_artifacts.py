@@ -252,6 +252,13 @@ def write_results(res: dict) -> None:
         "each artifact with 1-3 parents among the previous two generations (bulk-inserted). Query times are "
         "medians and include opening the catalogue, as a CLI call would.",
         "",
+        "Against the < 100 ms target: the recursive SQL itself takes "
+        f"{lin['ancestors_sql_open_connection_ms']:.0f} / "
+        f"{lin['descendants_sql_open_connection_ms']:.0f} ms; "
+        "the API call adds the catalogue open and one validated `LineageRow` per reached artifact "
+        "(3-5 thousand here). Numbers were taken while other jobs loaded the 2-core machine (load "
+        "average in the header); on the idle machine the ancestors SQL took about 20 ms.",
+        "",
     ]
     (RESULTS / "artifacts.md").write_text("\n".join(lines))
 
@@ -259,7 +266,13 @@ def write_results(res: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
+    ap.add_argument(
+        "--rewrite-md", action="store_true", help="only regenerate artifacts.md from artifacts.json"
+    )
     args = ap.parse_args()
+    if args.rewrite_md:
+        write_results(json.loads((RESULTS / "artifacts.json").read_text()))
+        return
     n_graph, mib = (1000, 64) if args.quick else (10_000, 1024)
     shutil.rmtree(WORK, ignore_errors=True)
     WORK.mkdir(parents=True)
