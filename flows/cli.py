@@ -264,10 +264,9 @@ def lineage(
     if fmt == "json":
         _print_json([r.model_dump() for r in rows])
     elif fmt == "mermaid":
-        console.print(as_mermaid(rows, record.id, ancestors=not descendants), markup=False)
+        typer.echo(as_mermaid(rows, record, ancestors=not descendants))
     elif fmt == "tree":
-        root = next((r for r in rows if r.depth == 0), None)
-        console.print(as_tree(root, rows, record.id), markup=False, highlight=False)
+        typer.echo(as_tree(rows, record))
     else:
         raise typer.BadParameter(f"unknown format {fmt!r}; use tree, json or mermaid")
 
@@ -354,7 +353,7 @@ def sql(query: str, home: HomeOption = None, as_json: JsonOption = False) -> Non
     if as_json:
         _print_json(frame.to_dict(orient="records"))
     else:
-        console.print(frame.to_string(index=False), markup=False, highlight=False)
+        typer.echo(frame.to_string(index=False))
 
 
 @app.command("import")

@@ -2,21 +2,22 @@
 
 from __future__ import annotations
 
-from artifacts.records import LineageRow
+from artifacts.records import ArtifactRecord, LineageRow
 
 
 def _label(row_id: str, kind: str | None, name: str | None) -> str:
     return f"{kind or '?'} {name or ''} [{row_id[:12]}]".strip()
 
 
-def as_tree(root: LineageRow | None, rows: list[LineageRow], root_id: str) -> str:
+def as_tree(rows: list[LineageRow], root: ArtifactRecord) -> str:
     """Each node under the node it was reached from (first path), with the edge role."""
     children: dict[str, list[LineageRow]] = {}
     for row in rows:
         if row.depth == 0:
             continue
         children.setdefault(row.path[-2], []).append(row)
-    lines = [_label(root_id, root.kind if root else None, root.name if root else None)]
+    root_id = root.id
+    lines = [_label(root_id, root.kind, root.name)]
 
     def walk(node: str, indent: str) -> None:
         kids = children.get(node, [])
@@ -31,10 +32,12 @@ def as_tree(root: LineageRow | None, rows: list[LineageRow], root_id: str) -> st
     return "\n".join(lines)
 
 
-def as_mermaid(rows: list[LineageRow], root_id: str, ancestors: bool) -> str:
+def as_mermaid(rows: list[LineageRow], root: ArtifactRecord, ancestors: bool) -> str:
     """`graph BT` for ancestors (arrows point from parent to child), `graph TD` for descendants."""
     lines = ["graph " + ("BT" if ancestors else "TD")]
+    root_id = root.id
     names = {r.id: _label(r.id, r.kind, r.name) for r in rows}
+    names[root_id] = _label(root_id, root.kind, root.name)
     seen = set()
     for row in rows:
         if row.depth == 0:
@@ -50,5 +53,5 @@ def as_mermaid(rows: list[LineageRow], root_id: str, ancestors: bool) -> str:
             f'n{child[:12]}["{names.get(child, child[:12])}"]'
         )
     if len(lines) == 1:
-        lines.append(f'    n{root_id[:12]}["{root_id[:12]}"]')
+        lines.append(f'    n{root_id[:12]}["{names[root_id]}"]')
     return "\n".join(lines)

@@ -9,7 +9,9 @@ Two layers use it:
   (a killed flow, a deleted Prefect home).
 - `prefect_cache_key` is the Prefect `cache_key_fn`. It mixes the id of the verified artifact into
   the key, or a fresh nonce when there is none, so that a Prefect cache hit can only ever return an
-  artifact that exists and verifies; a missing or corrupt one makes the step recompute.
+  artifact that exists and verifies; a missing or corrupt one makes the step recompute. When a step
+  produces its artifact inside a Prefect task, its result is also written under the key the next
+  run will compute, so that run is a plain Prefect cache hit.
 """
 
 from __future__ import annotations
@@ -41,11 +43,23 @@ def _index_path(workspace: Workspace, key: str) -> Path:
 
 
 def lookup(workspace: Workspace, key: str) -> str | None:
-    """The artifact id stored for `key`, if it is still in the store and its content verifies."""
+    """The artifact id stored for `key`, if it is still in the store and its content verifies.
+
+    Without an index entry (a crash between registration and `remember`), the catalogue is asked
+    for an artifact registered with this cache key, so finished work is never done twice.
+    """
     path = _index_path(workspace, key)
-    if not path.exists():
-        return None
-    artifact_id = json.loads(path.read_text())["artifact_id"]
+    if path.exists():
+        artifact_id = json.loads(path.read_text())["artifact_id"]
+    else:
+        frame = workspace.api.query(
+            "SELECT id FROM artifacts WHERE json_extract_string(config, '$.cache_key') = ? "
+            "ORDER BY created_at DESC LIMIT 1",
+            [key],
+        )
+        if frame.empty:
+            return None
+        artifact_id = str(frame.iloc[0, 0])
     return artifact_id if workspace.artifact_is_intact(artifact_id) else None
 
 
@@ -74,7 +88,21 @@ def cached_step(
         return existing
     artifact_id = produce(key)
     remember(workspace, key, artifact_id)
+    _prime_prefect_cache(key, artifact_id)
     return artifact_id
+
+
+def _prefect_key(content: str, artifact_id: str | None) -> str:
+    return hashlib.sha256(f"{content}:{artifact_id or uuid.uuid4().hex}".encode()).hexdigest()
+
+
+def _prime_prefect_cache(content: str, artifact_id: str) -> None:
+    """Inside a Prefect task run: store the result under the key a later run with this artifact uses."""
+    from prefect.context import TaskRunContext
+
+    context = TaskRunContext.get()
+    if context is not None and context.result_store is not None:
+        context.result_store.write(obj=artifact_id, key=_prefect_key(content, artifact_id))
 
 
 def prefect_cache_key(context: Any, parameters: dict[str, Any]) -> str:
@@ -85,5 +113,4 @@ def prefect_cache_key(context: Any, parameters: dict[str, Any]) -> str:
     """
     workspace = Workspace(parameters["home"])
     key = content_key(context.task.name, parameters.get("inputs") or {}, parameters.get("config") or {})
-    valid = lookup(workspace, key)
-    return hashlib.sha256(f"{key}:{valid or uuid.uuid4().hex}".encode()).hexdigest()
+    return _prefect_key(key, lookup(workspace, key))

@@ -33,7 +33,9 @@ def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, A
     }
 
 
-def evaluate_checkpoint(workspace: Workspace, step: str, checkpoint_id: str, config: dict[str, Any]) -> str:
+def evaluate_checkpoint(
+    workspace: Workspace, step: str, checkpoint_id: str, config: dict[str, Any], cache_key: str | None = None
+) -> str:
     """Run the rollouts now (no cache) and register the evaluation; returns its artifact id."""
     eval_config = EvalConfig.model_validate(config)
     policy = load_policy(workspace.path(checkpoint_id), device="auto")
@@ -49,6 +51,7 @@ def evaluate_checkpoint(workspace: Workspace, step: str, checkpoint_id: str, con
             "success_rates": result.success_rates,
             "wall_time_s": result.wall_time_s,
             "env_steps": result.env_steps,
+            "cache_key": cache_key,
         },
         **meta,
     )
@@ -69,7 +72,7 @@ def run_evaluate(workspace: Workspace, step: str, inputs: dict[str, str], config
         "evaluate",
         inputs,
         config,
-        lambda _key: evaluate_checkpoint(workspace, step, inputs["checkpoint"], config),
+        lambda key: evaluate_checkpoint(workspace, step, inputs["checkpoint"], config, cache_key=key),
     )
 
 

@@ -14,3 +14,37 @@ if "CAPVECTOR_TEST_KEEP_PREFECT_HOME" not in os.environ:
 import torch  # noqa: E402
 
 torch.set_num_threads(2)
+
+
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def run_cli(*args: str, home: Path, check: bool = True, timeout: float = 600) -> subprocess.CompletedProcess:
+    """The real console entry point in a subprocess, as a user runs it."""
+    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "flows.cli", *args],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"capvector {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def smoke_home(tmp_path_factory) -> tuple[Path, dict]:
+    """One cold `capvector run --preset smoke` shared by the flow, CLI and scheduling tests."""
+    home = tmp_path_factory.mktemp("smoke-home")
+    proc = run_cli("run", "--preset", "smoke", "--json", home=home)
+    return home, json.loads(proc.stdout)

@@ -1,0 +1,54 @@
+"""Pipeline configuration: presets validate, overrides are checked key by key."""
+
+import pytest
+from pydantic import ValidationError
+
+from flows.config import ARMS, PipelineConfig, load_config
+from flows.overrides import ConfigKeyError
+
+
+@pytest.mark.parametrize("preset", ["smoke", "quick", "paper"])
+def test_presets_validate(preset):
+    config = load_config(preset)
+    assert config.splits.downstream
+    assert not set(config.splits.downstream) & (set(config.splits.pretrain) | set(config.splits.extraction))
+    assert all(arm in ARMS for arm in config.arms)
+
+
+def test_override_sets_nested_value_with_its_type():
+    config = load_config("smoke", ["downstream.steps=7", "alpha=0.5", "arms=[sft, capvector]"])
+    assert config.downstream.steps == 7
+    assert config.alpha == 0.5
+    assert config.arms == ["sft", "capvector"]
+
+
+def test_unknown_key_names_the_key_and_suggests():
+    with pytest.raises(ConfigKeyError, match=r"'pretrain.stepz'.*did you mean 'pretrain.steps'"):
+        load_config("smoke", ["pretrain.stepz=3"])
+
+
+def test_key_below_a_leaf_is_refused():
+    with pytest.raises(ConfigKeyError, match="'alpha' has no sub-keys"):
+        load_config("smoke", ["alpha.x=1"])
+
+
+def test_wrong_type_names_the_field():
+    with pytest.raises(ValidationError, match=r"downstream\.steps"):
+        load_config("smoke", ["downstream.steps=many"])
+
+
+def test_unknown_preset_lists_known():
+    with pytest.raises(ValueError, match="known presets: .*smoke"):
+        load_config("nope")
+
+
+def test_downstream_tasks_must_be_new():
+    data = load_config("smoke").model_dump()
+    data["splits"]["downstream"] = list(data["splits"]["extraction"])
+    with pytest.raises(ValidationError, match="shares task"):
+        PipelineConfig.model_validate(data)
+
+
+def test_policy_and_data_modes_must_agree():
+    with pytest.raises(ValidationError, match="obs_mode"):
+        load_config("smoke", ["data.obs_mode=pixels"])

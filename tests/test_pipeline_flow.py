@@ -1,0 +1,136 @@
+"""The `pipeline` flow end to end on the smoke preset: caching, partial re-runs, lineage, resume."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from conftest import REPO
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
+from artifacts.api import ArtifactsAPI
+from flows.config import load_config
+from flows.pipeline import pipeline
+
+UPSTREAM = ("pretrained", "standard", "auxiliary", "vector", "meta")
+
+
+def _artifact_count(home) -> int:
+    return int(ArtifactsAPI(str(home)).query("SELECT count(*) AS n FROM artifacts")["n"][0])
+
+
+def _task_states(flow_run_id) -> dict[str, str]:
+    with get_client(sync_client=True) as client:
+        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])))
+    return {run.name: run.state.name for run in runs}
+
+
+def _run(home, overrides=()):
+    config = load_config("smoke", list(overrides)).model_dump(mode="json")
+    state = pipeline(config, str(home), return_state=True)
+    assert state.is_completed(), state
+    return state.result(), _task_states(state.state_details.flow_run_id)
+
+
+def test_cold_run_produces_every_artifact(smoke_home):
+    home, ids = smoke_home
+    api = ArtifactsAPI(str(home))
+    kinds = dict(api.query("SELECT kind, count(*) AS n FROM artifacts GROUP BY kind").values.tolist())
+    assert kinds["dataset"] == 3
+    assert kinds["checkpoint"] == 3 + 1 + 3  # θ_pt, θ_ft, θ_ao; θ_meta; three downstream arms
+    assert kinds["vector"] == 1 and kinds["vector_stats"] == 1
+    assert kinds["evaluation"] == 3 and kinds["report"] == 1
+    report = api.store.open_json(ids["report"])
+    assert set(report["arms"]) == {"sft", "aux", "capvector"}
+    assert api.query("SELECT count(*) AS n FROM eval_episodes")["n"][0] == 3 * 2  # arms × episodes
+
+
+def test_second_run_hits_every_cache_and_creates_nothing(smoke_home):
+    home, ids = smoke_home
+    before = _artifact_count(home)
+    again, states = _run(home)
+    assert again == ids
+    assert _artifact_count(home) == before
+    assert states and set(states.values()) == {"Cached"}, states
+
+
+def test_lineage_of_capvector_checkpoint_reaches_demos_through_the_vector(smoke_home):
+    home, ids = smoke_home
+    rows = ArtifactsAPI(str(home)).ancestors(ids["checkpoints"]["capvector/seed0"])
+    by_id = {r.id: r for r in rows}
+    for key in UPSTREAM:
+        assert ids[key] in by_id, key
+    assert by_id[ids["meta"]].roles == ["init"]
+    assert "minuend" in by_id[ids["auxiliary"]].roles and "subtrahend" in by_id[ids["standard"]].roles
+    assert set(ids["datasets"].values()) <= set(by_id)
+    vectors = ArtifactsAPI(str(home)).vectors_merged_into(ids["checkpoints"]["capvector/seed0"])
+    assert [(v.vector_id, v.alpha) for v in vectors] == [(ids["vector"], 1.1)]
+
+
+def test_changing_a_downstream_setting_reruns_only_the_steps_below(smoke_home):
+    home, ids = smoke_home
+    changed, states = _run(home, ["downstream.steps=24"])
+    assert changed["datasets"] == ids["datasets"]
+    for key in UPSTREAM:
+        assert changed[key] == ids[key], key
+    assert set(changed["checkpoints"].values()).isdisjoint(ids["checkpoints"].values())
+    ran = {name for name, state in states.items() if state != "Cached"}
+    assert ran and all(n.startswith(("downstream", "evaluate", "report")) for n in ran), ran
+    assert {n for n, s in states.items() if s == "Cached"} >= {"pretrain θ_pt", "capability vector γ"}
+
+
+def test_a_cache_hit_whose_artifact_vanished_recomputes_it(smoke_home):
+    home, ids = smoke_home
+    api = ArtifactsAPI(str(home))
+    shutil.rmtree(api.store.object_path(ids["vector"]), ignore_errors=True)
+    if os.path.exists(api.store.object_path(ids["vector"])):
+        os.remove(api.store.object_path(ids["vector"]))
+    again, states = _run(home)
+    assert states["capability vector γ"] == "Completed"
+    assert states["pretrain θ_pt"] == "Cached"
+    assert again["vector"] == ids["vector"]  # same inputs, same bytes, same id
+    api.path(ids["vector"], verify=True)  # restored and intact
+
+
+def test_a_killed_flow_resumes_from_cached_steps(smoke_home, tmp_path):
+    _, reference = smoke_home
+    home = tmp_path / "home"
+    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
+    cmd = [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke", "--json"]
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    index = home / "step-cache"
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if index.exists() and len(list(index.glob("*.json"))) >= 5:  # demos ×3, θ_pt, one more
+            break
+        time.sleep(0.2)
+    if proc.poll() is not None:
+        pytest.fail("the run finished before it could be killed")
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+    done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    resumed = json.loads(done.stdout)
+    assert resumed["datasets"] == reference["datasets"]
+    assert resumed["checkpoints"] == reference["checkpoints"]
+    for key in ("pretrained", "standard", "auxiliary", "meta"):
+        assert resumed[key] == reference[key], key
+
+    frame = ArtifactsAPI(str(home)).query("SELECT kind, count(*) AS n FROM artifacts GROUP BY kind")
+    assert dict(frame.values.tolist()) == {
+        "dataset": 3,
+        "checkpoint": 7,
+        "training_log": 7,
+        "vector": 1,
+        "vector_stats": 1,
+        "evaluation": 3,
+        "report": 1,
+    }
