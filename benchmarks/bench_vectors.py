@@ -4,7 +4,9 @@ Compares, on the same files and in one run, with repetitions interleaved:
 - ours: `extract(θ_ao, θ_ft) -> γ` then `merge(θ_pt, [(γ, α)]) -> θ_meta` (two passes, two outputs);
 - mergekit 0.1.5 `task_arithmetic` (one pass: base θ_ft, θ_pt weight 1, θ_ao weight α, normalize false,
   dtype float32, out_dtype bfloat16 — the same float32 arithmetic as ours), installed by this script in
-  its own venv `benchmarks/_work/mergekit-venv`;
+  its own venv `benchmarks/_work/mergekit-venv`. `mergekit-pytorch` loads one file per model (its
+  `ShardedTensorIndex.from_file` does not read a shard index), so it gets single-file copies of the same
+  tensors;
 - the I/O floor of each of our passes: read both inputs, write one output, no arithmetic and no hashing.
 Each command runs in its own process under /usr/bin/time (wall time, peak RSS). Files are in page cache
 for every command alike (each input is read by an earlier command first). Targets: faster than
@@ -64,6 +66,18 @@ def build() -> None:
                 )
 
 
+def consolidate() -> None:
+    """Single-file copies for mergekit-pytorch, whose loader takes one file per model, not a shard index."""
+    for name in ("pt", "ft", "ao"):
+        out = DATA / f"{name}.safetensors"
+        if out.exists():
+            continue
+        src = Checkpoint(DATA / name)
+        with ShardedWriter(out, {n: (s.torch_dtype, s.shape) for n, s in src.specs.items()}) as w:
+            for n in w.order:
+                w.write(n, src.get(n))
+
+
 def ensure_mergekit() -> str | None:
     """Install mergekit in its own venv; return an error text instead of raising."""
     exe = VENV / "bin" / "mergekit-pytorch"
@@ -115,10 +129,10 @@ def py(code: str, **kw) -> list[str]:
 def mergekit_cmd(out: Path) -> list[str]:
     config = {
         "merge_method": "task_arithmetic",
-        "base_model": str(DATA / "ft"),
+        "base_model": str(DATA / "ft.safetensors"),
         "models": [
-            {"model": str(DATA / "pt"), "parameters": {"weight": 1.0}},
-            {"model": str(DATA / "ao"), "parameters": {"weight": ALPHA}},
+            {"model": str(DATA / "pt.safetensors"), "parameters": {"weight": 1.0}},
+            {"model": str(DATA / "ao.safetensors"), "parameters": {"weight": ALPHA}},
         ],
         "parameters": {"normalize": False},
         "dtype": "float32",
@@ -161,6 +175,7 @@ def main() -> None:
         "interpreter": py(INTERPRETER),
     }
     if mk_error is None:
+        consolidate()
         runs["mergekit"] = mergekit_cmd(mk_out)
     samples: dict[str, list[dict]] = {k: [] for k in runs}
     for rep in range(args.reps):

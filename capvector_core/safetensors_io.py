@@ -181,20 +181,28 @@ class Checkpoint:
     def largest_tensor_nbytes(self) -> int:
         return max((s.nbytes for s in self.specs.values()), default=0)
 
-    def read_raw(self, name: str) -> torch.Tensor:
-        """Read one tensor's bytes into fresh, owned memory (no memory map stays behind)."""
+    def read_raw(self, name: str, start: int = 0, stop: int | None = None) -> torch.Tensor:
+        """Read bytes [start, stop) of one tensor into fresh, owned memory (no memory map stays behind)."""
         spec = self.specs[name]
-        buf = torch.empty(spec.nbytes, dtype=torch.uint8)
+        stop = spec.nbytes if stop is None else stop
+        buf = torch.empty(stop - start, dtype=torch.uint8)
         with open(spec.file, "rb", buffering=0) as f:
-            f.seek(spec.begin)
+            f.seek(spec.begin + start)
             view = memoryview(buf.numpy())
             got = 0
-            while got < spec.nbytes:
+            while got < len(buf):
                 n = f.readinto(view[got:])
                 if not n:
                     raise CheckpointError(f"{spec.file} ended while reading tensor {name!r}")
                 got += n
         return buf
+
+    def chunk_bounds(self, name: str, chunk_bytes: int) -> list[tuple[int, int]]:
+        """Byte ranges covering one tensor, each a whole number of elements and at most ~chunk_bytes."""
+        spec = self.specs[name]
+        item = torch.empty((), dtype=spec.torch_dtype).element_size()
+        step = max(item, chunk_bytes // item * item)
+        return [(b, min(b + step, spec.nbytes)) for b in range(0, spec.nbytes, step)] or [(0, 0)]
 
     def typed(self, name: str, raw: torch.Tensor) -> torch.Tensor:
         """View bytes from `read_raw` as the tensor they encode."""
@@ -369,18 +377,34 @@ class ShardedWriter:
         self._shard_of = {name: i for i, shard in enumerate(self._shards) for name in shard}
         return self
 
-    def write(self, name: str, tensor: torch.Tensor) -> None:
-        """Append the next tensor; it must be the next name of `order`, with the declared dtype and shape."""
+    def _expect(self, name: str) -> None:
         expected = self._order[self._pos] if self._pos < len(self._order) else None
         if name != expected:
             raise CheckpointError(f"writer expected tensor {expected!r} next, got {name!r}")
+
+    def write(self, name: str, tensor: torch.Tensor) -> None:
+        """Append the next tensor; it must be the next name of `order`, with the declared dtype and shape."""
+        self._expect(name)
         dtype, shape = self._specs[name]
         if DTYPE_NAMES.get(tensor.dtype) != dtype or tuple(tensor.shape) != shape:
             raise CheckpointError(
                 f"tensor {name!r}: got {tensor.dtype} {tuple(tensor.shape)}, declared {dtype} {shape}"
             )
-        t = tensor.detach().to("cpu").contiguous()
-        self._files[self._shard_of[name]].write(memoryview(t.reshape(-1).view(torch.uint8).numpy()))
+        self.write_chunks(name, [tensor])
+
+    def write_chunks(self, name: str, chunks) -> None:
+        """Append the next tensor from pieces (flat, in order, of its dtype) that add up to its size."""
+        self._expect(name)
+        dtype = self._specs[name][0]
+        f = self._files[self._shard_of[name]]
+        written = 0
+        for chunk in chunks:
+            if DTYPE_NAMES.get(chunk.dtype) != dtype:
+                raise CheckpointError(f"tensor {name!r}: got {chunk.dtype}, declared {dtype}")
+            t = chunk.detach().to("cpu").contiguous()
+            written += f.write(memoryview(t.reshape(-1).view(torch.uint8).numpy()))
+        if written != self._sizes[name]:
+            raise CheckpointError(f"tensor {name!r}: wrote {written} bytes, declared {self._sizes[name]}")
         self._pos += 1
 
     def set_metadata(self, key: str, value: str) -> None:

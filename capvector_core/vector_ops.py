@@ -28,7 +28,7 @@ import json
 import math
 import os
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal
@@ -47,6 +47,7 @@ from capvector_core.safetensors_io import (
 
 PathLike = str | os.PathLike
 _PLACEHOLDER = "0" * 64
+CHUNK_BYTES = 16 << 20  # tensors are processed in pieces of this size: memory does not grow with them
 
 
 class VectorOpError(CheckpointError):
@@ -126,19 +127,21 @@ class _HashingReader:
             h.update(head)
             self.state[f] = [h, len(head)]
 
-    def get(self, name: str) -> torch.Tensor:
+    def chunks(self, name: str, bounds: list[tuple[int, int]]) -> Iterator[torch.Tensor]:
+        """Flat typed pieces of one tensor, read (and hashed) in the byte ranges `bounds`."""
         spec = self.ckpt.specs[name]
-        raw = self.ckpt.read_raw(name)
-        st = self.state[spec.file]
-        if st[1] is not None and st[1] <= spec.begin:
-            self._wait()
-            if st[1] < spec.begin:  # bytes skipped (tensors not needed, padding): hash them from disk
-                _hash_range(st[0], spec.file, st[1], spec.begin)
-            self.pending = self.pool.submit(st[0].update, memoryview(raw.numpy()))
-            st[1] = spec.end
-        else:
-            st[1] = None  # read out of order: hash the whole file from disk at the end
-        return self.ckpt.typed(name, raw)
+        for b, e in bounds:
+            raw = self.ckpt.read_raw(name, b, e)
+            st = self.state[spec.file]
+            if st[1] is not None and st[1] <= spec.begin + b:
+                self._wait()
+                if st[1] < spec.begin + b:  # bytes skipped (tensors not needed, padding): hash from disk
+                    _hash_range(st[0], spec.file, st[1], spec.begin + b)
+                self.pending = self.pool.submit(st[0].update, memoryview(raw.numpy()))
+                st[1] = spec.begin + e
+            else:
+                st[1] = None  # read out of order: hash the whole file from disk at the end
+            yield raw.view(spec.torch_dtype)
 
     def _wait(self) -> None:
         if self.pending is not None:
@@ -177,15 +180,12 @@ def _finite_or_raise(t: torch.Tensor, name: str, role: str) -> None:
         raise VectorOpError(f"NaN or Inf in tensor {name!r} of {role}")
 
 
-def _cast_back(acc: torch.Tensor, dtype: torch.dtype, name: str, inputs: list[tuple[str, Checkpoint]]):
-    """Cast a float32/64 result to the output dtype; if it is not finite, name the input responsible.
-
-    Inputs are re-read on that (rare) path, which keeps the common path free of extra passes.
-    """
+def _cast_back(acc: torch.Tensor, dtype: torch.dtype, name: str, inputs: list[tuple[str, torch.Tensor]]):
+    """Cast a float32/64 result to the output dtype; if it is not finite, name the input responsible."""
     out = acc if acc.dtype == dtype else acc.to(dtype)
     if not _sum_is_finite(out) and not bool(torch.isfinite(out).all()):
-        for role, ckpt in inputs:
-            _finite_or_raise(ckpt.get(name), name, role)
+        for role, t in inputs:
+            _finite_or_raise(t, name, role)
         raise VectorOpError(f"result for tensor {name!r} overflows {dtype}")
     return out
 
@@ -205,13 +205,13 @@ def _run(
     overwrite: bool,
     check=None,
 ) -> Path:
-    """Stream `compute(name) -> tensor` for every name into `out`, then fill in the input hashes."""
+    """Stream `compute(name) -> flat pieces` for every name into `out`, then fill in the input hashes."""
     inputs = _inputs_meta(readers)
     metadata = {**metadata, "capvector.inputs": json.dumps(inputs, sort_keys=True)}
     specs = {n: (ref.specs[n].torch_dtype, ref.specs[n].shape) for n in names}
     with ShardedWriter(out, specs, metadata, max_shard_bytes, overwrite) as w:
         for n in w.order:
-            w.write(n, compute(n))
+            w.write_chunks(n, compute(n))
         digests = {role: r.sha256() for role, r in readers.items()}
         if check is not None:
             check(digests)
@@ -254,17 +254,19 @@ def extract(
     pool = ThreadPoolExecutor(1)
     ra, rb = _HashingReader(a, pool), _HashingReader(b, pool)
 
-    def compute(n: str) -> torch.Tensor:
-        x, y = ra.get(n), rb.get(n)
-        if not x.is_floating_point():
-            if not torch.equal(x, y):
-                raise VectorOpError(f"non-float tensor {n!r} differs between minuend and subtrahend")
-            return x
-        wide = torch.float64 if x.dtype == torch.float64 else torch.float32
-        # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
-        xw = x.to(wide)
-        acc = xw.sub(y) if xw is x else xw.sub_(y.to(wide))
-        return _cast_back(acc, x.dtype, n, [("minuend", a), ("subtrahend", b)])
+    def compute(n: str) -> Iterator[torch.Tensor]:
+        bounds = a.chunk_bounds(n, CHUNK_BYTES)
+        for x, y in zip(ra.chunks(n, bounds), rb.chunks(n, bounds), strict=True):
+            if not x.is_floating_point():
+                if not torch.equal(x, y):
+                    raise VectorOpError(f"non-float tensor {n!r} differs between minuend and subtrahend")
+                yield x
+                continue
+            # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
+            wide = torch.float64 if x.dtype == torch.float64 else torch.float32
+            xw = x.to(wide)
+            acc = xw.sub(y) if xw is x else xw.sub_(y.to(wide))
+            yield _cast_back(acc, x.dtype, n, [("minuend", x), ("subtrahend", y)])
 
     meta = {
         "capvector.kind": "vector",
@@ -314,25 +316,30 @@ def merge(
     rb = _HashingReader(b, pool)
     rvs = [_HashingReader(v, pool) for v, _ in vecs]
 
-    def compute(n: str) -> torch.Tensor:
-        x = rb.get(n)
-        if n in selected:
-            terms = [(i, r.get(n), a) for i, (r, (v, a)) in enumerate(zip(rvs, vecs, strict=True)) if n in v]
-        else:
-            terms = []
-        if not terms:
-            _finite_or_raise(x, n, "base")
-            return x
-        if not x.is_floating_point():
-            for i, y, _ in terms:
-                if not torch.equal(x, y):
-                    raise VectorOpError(f"non-float tensor {n!r} differs between base and vector {i}")
-            return x
-        wide = torch.float64 if x.dtype == torch.float64 else torch.float32
-        acc = None  # fresh memory: x and y may still be being hashed in the helper thread
-        for _, y, a in terms:
-            acc = torch.add(x.to(wide), y.to(wide), alpha=a) if acc is None else acc.add_(y.to(wide), alpha=a)
-        return _cast_back(acc, x.dtype, n, [("base", b)] + [(f"vector {i}", vecs[i][0]) for i, _, _ in terms])
+    def compute(n: str) -> Iterator[torch.Tensor]:
+        bounds = b.chunk_bounds(n, CHUNK_BYTES)
+        users = [(i, r, a) for i, (r, (v, a)) in enumerate(zip(rvs, vecs, strict=True)) if n in v]
+        if n not in selected:
+            users = []
+        streams = [(i, r.chunks(n, bounds), a) for i, r, a in users]
+        for x in rb.chunks(n, bounds):
+            terms = [(i, next(it), a) for i, it, a in streams]
+            if not terms:
+                _finite_or_raise(x, n, "base")
+                yield x
+                continue
+            if not x.is_floating_point():
+                for i, y, _ in terms:
+                    if not torch.equal(x, y):
+                        raise VectorOpError(f"non-float tensor {n!r} differs between base and vector {i}")
+                yield x
+                continue
+            wide = torch.float64 if x.dtype == torch.float64 else torch.float32
+            acc = None  # fresh memory: x and y may still be being hashed in the helper thread
+            for _, y, a in terms:
+                y = y.to(wide)
+                acc = torch.add(x.to(wide), y, alpha=a) if acc is None else acc.add_(y, alpha=a)
+            yield _cast_back(acc, x.dtype, n, [("base", x)] + [(f"vector {i}", y) for i, y, _ in terms])
 
     def check(digests: dict[str, str]) -> None:
         for i, (v, _) in enumerate(vecs):

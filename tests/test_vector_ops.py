@@ -7,6 +7,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from capvector_core import vector_ops
 from capvector_core.safetensors_io import Checkpoint, CheckpointError, write_checkpoint
 from capvector_core.vector_ops import VectorOpError, extract, merge, select_names, stats
 
@@ -45,7 +46,8 @@ def _naive_sub(a, b):
 
 @pytest.mark.parametrize("sharded", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float16, torch.bfloat16])
-def test_extract_and_merge_match_naive(tmp_path, dtype, sharded):
+def test_extract_and_merge_match_naive(tmp_path, dtype, sharded, monkeypatch):
+    monkeypatch.setattr(vector_ops, "CHUNK_BYTES", 24)  # many pieces per tensor, odd boundaries
     pt, ft, ao = (_random_ckpt(dtype, s) for s in (0, 1, 2))
     p_pt, p_ft, p_ao = (_write(tmp_path, n, t, sharded) for n, t in (("pt", pt), ("ft", ft), ("ao", ao)))
     out_ext = tmp_path / ("gamma" if sharded else "gamma.safetensors")
@@ -108,7 +110,8 @@ def test_key_shape_dtype_mismatches_write_nothing(tmp_path):
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
 @pytest.mark.parametrize("sharded", [False, True])
-def test_non_finite_input_named_and_nothing_written(tmp_path, bad, sharded):
+def test_non_finite_input_named_and_nothing_written(tmp_path, bad, sharded, monkeypatch):
+    monkeypatch.setattr(vector_ops, "CHUNK_BYTES", 64)
     a, b = _random_ckpt(torch.bfloat16, 0), _random_ckpt(torch.bfloat16, 1)
     b["backbone.layers.1.weight"][3, 3] = bad
     p_a, p_b = _write(tmp_path, "a", a, sharded), _write(tmp_path, "b", b, sharded)
