@@ -71,13 +71,14 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--d-model", type=int, default=128)
     ap.add_argument("--checkpoint-every", type=int, default=100)
+    ap.add_argument("--work-dir", type=Path, default=None, help="demo cache (default: bench_learning's)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 copes best with other jobs)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    from bench_learning import demos  # the learning check's cached 8-task state demos
+    from bench_learning import WORK, demos  # the learning check's cached 8-task state demos
 
-    dataset, _ = demos("state", 25, 64)
+    dataset, _ = demos("state", 25, 64, args.work_dir or WORK)
     policy_config = PolicyConfig(d_model=args.d_model, n_layers=4, n_heads=4, chunk_size=8)
     config = TrainConfig(
         steps=args.steps,
@@ -93,6 +94,10 @@ def main() -> None:
     times: dict[str, list[float]] = {"ours": [], "plain": []}
     work = Path(tempfile.mkdtemp(prefix="bench-train-"))
     try:
+        # untimed warm-up of both: the first call in a process pays one-time lazy imports inside torch
+        warm = config.model_copy(update={"steps": 5, "warmup_steps": 1})
+        train(VLAPolicy(policy_config), dataset, warm, work / "warmup", progress=False)
+        plain_loop(VLAPolicy(policy_config), dataset, warm)
         for r in range(args.rounds):
             order = ["ours", "plain"] if r % 2 == 0 else ["plain", "ours"]
             for which in order:
