@@ -47,7 +47,7 @@ from capvector_core.safetensors_io import (
 
 PathLike = str | os.PathLike
 _PLACEHOLDER = "0" * 64
-CHUNK_BYTES = 16 << 20  # tensors are processed in pieces of this size: memory does not grow with them
+CHUNK_BYTES = 4 << 20  # tensors are processed in pieces of this size: memory does not grow with them
 
 
 class VectorOpError(CheckpointError):
