@@ -23,7 +23,6 @@ interface (capability vectors are per-tensor); the scheme is::
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal
@@ -33,11 +32,12 @@ import torch
 import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from safetensors import safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 from torch import nn
 
 from capvector_core import tokenizer
 from capvector_core.device import resolve_device
+from capvector_core.safetensors_io import write_checkpoint
 
 CONFIG_METADATA_KEY = "capvector.policy_config"
 STATE_GROUPS: dict[str, tuple[int, int]] = {
@@ -390,12 +390,12 @@ def build_policy(config: PolicyConfig | Mapping, device: str | torch.device = "a
 
 
 def save_tensors_atomic(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str]) -> None:
-    """safetensors write via a temporary name, fsync and rename: readers never see half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(tensors, str(tmp), metadata=metadata)
-    with open(tmp, "rb") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    """One safetensors file, atomically (temporary name, fsync, rename), byte-for-byte reproducible.
+
+    `safetensors.save_file` writes the metadata map in a per-process random order, so equal weights
+    would get different content hashes (artifact ids); our writer keeps the (sorted) order given.
+    """
+    write_checkpoint(path, tensors, dict(sorted(metadata.items())), overwrite=True)
 
 
 def save_policy(model: VLAPolicy, path: str | Path, metadata: Mapping[str, str] | None = None) -> Path:

@@ -3,7 +3,9 @@
     demos(D_pt, D_ext, D_down) -> θ_pt -> {θ_ft, θ_ao} on D_ext -> γ = θ_ao − θ_ft -> θ_meta = θ_pt + α·γ
     -> downstream arms × seeds on D_down -> evaluation under one protocol -> comparison report
 
-Independent branches are submitted together and run concurrently on the task runner.
+Independent branches are submitted together and run concurrently on the task runner: a pool of
+processes, because steps seed torch's process-global RNG and must not share it, and because two
+training steps in two processes use both cores without contending for the GIL.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 from typing import Any
 
 from prefect import flow
+from prefect.task_runners import ProcessPoolTaskRunner
 
 from flows.config import ARMS, PipelineConfig
 from flows.runs import publish_markdown, recorded_run
@@ -86,7 +89,11 @@ def submit_arm(
     return train_task.submit(home, label or f"downstream {arm} seed {seed}", inputs, _dump(step_config))
 
 
-@flow(name="pipeline", log_prints=True)
+def step_runner(workers: int = 2) -> ProcessPoolTaskRunner:
+    return ProcessPoolTaskRunner(max_workers=workers)
+
+
+@flow(name="pipeline", log_prints=True, task_runner=step_runner())
 def pipeline(config: dict[str, Any], home: str) -> dict[str, Any]:
     """Run (or resume from cache) the recipe; returns the artifact ids of every product."""
     cfg = PipelineConfig.model_validate(config)

@@ -62,6 +62,8 @@ class TrainStepConfig(BaseModel):
 
 
 def _initial_policy(workspace: Workspace, cfg: TrainStepConfig, init_id: str | None) -> VLAPolicy:
+    """θ from `init`, or a fresh model whose initialisation depends on the training seed alone."""
+    torch.manual_seed(cfg.train.seed)  # also seeds adapter initialisation, which follows
     if init_id is None:
         if cfg.policy is None:
             raise ValueError("training from scratch (no `init` checkpoint) needs a `policy` config")

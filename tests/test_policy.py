@@ -130,3 +130,22 @@ def test_tokenizer_is_deterministic_and_padded():
     # crc32-based: fixed across processes and Python hash seeds
     assert ids[0] == 1 + __import__("zlib").crc32(b"open") % 999
     assert len(tokenizer.encode("a b c d e f g h", 50, 3)) == 3
+
+
+def test_saved_file_is_byte_identical_across_processes(tmp_path):
+    """Content-addressed artifacts need reproducible bytes (safetensors' own writer orders metadata randomly)."""
+    import hashlib
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, torch; from capvector_core.policy import PolicyConfig, build_policy, save_policy\n"
+        "torch.manual_seed(0); m = build_policy(PolicyConfig(d_model=16, n_layers=1, n_heads=2), 'cpu')\n"
+        "save_policy(m, sys.argv[1], {'b': '1', 'a': '2', 'c': '3'})\n"
+    )
+    digests = set()
+    for i in range(3):
+        out = tmp_path / f"m{i}.safetensors"
+        subprocess.run([sys.executable, "-c", script, str(out)], check=True)
+        digests.add(hashlib.sha256(out.read_bytes()).hexdigest())
+    assert len(digests) == 1
