@@ -26,16 +26,6 @@ def latest_report_id(workspace: Workspace) -> str:
     return str(frame.iloc[0, 0])
 
 
-def _children(workspace: Workspace, parent: str, role: str) -> list[str]:
-    frame = workspace.api.query("SELECT child FROM edges WHERE parent = ? AND role = ?", [parent, role])
-    return [str(x) for x in frame["child"]]
-
-
-def _parents(workspace: Workspace, child: str, role: str) -> list[str]:
-    frame = workspace.api.query("SELECT parent FROM edges WHERE child = ? AND role = ?", [child, role])
-    return [str(x) for x in frame["parent"]]
-
-
 def plot_comparison(table: dict[str, Any], path: Path) -> Path:
     arms = list(table["arms"])
     means = [100 * table["arms"][a]["overall"]["mean"] for a in arms]
@@ -91,8 +81,9 @@ def write_report(workspace: Workspace, report_id: str, out: Path) -> Path:
     curves = {}
     for arm, row in table["arms"].items():
         run = row["runs"][0]
-        for log_id in _children(workspace, run["checkpoint_id"], "log_of"):
-            curves[f"{arm} ({run['label']})"] = workspace.api.store.open_json(log_id)["curve"]
+        curve = workspace.api.get(run["checkpoint_id"]).config.get("curve")
+        if curve:
+            curves[f"{arm} ({run['label']})"] = curve
     if curves:
         figures["curves"] = plot_curves(curves, out.parent / f"{stem}_curves.png")
 

@@ -3,8 +3,9 @@
 One step covers every training stage of the recipe; what differs is the config (aux objective,
 adapter, orthogonal regularizer) and the inputs (`data`, optional `init` checkpoint, optional
 `vector` γ for the regularizer). The checkpoint artifact holds dense weights only (LoRA runs are
-merged), so vectors can be taken from any of them; the adapter and the training log are separate
-artifacts that point at it.
+merged), so vectors can be taken from any of them; its record keeps the loss curve and run summary,
+and a LoRA/LoRA-SP adapter is a separate artifact, its parent with role `adapter`. The checkpoint
+is registered last: it is the step's commit point.
 """
 
 from __future__ import annotations
@@ -158,38 +159,30 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             if "vector" in inputs:
                 parents.append((inputs["vector"], "regularized_by"))
             meta = provenance()
-            record_config = {"train_step": cfg.model_dump(mode="json"), "cache_key": key, "summary": summary}
+            if adapter_dir is not None:  # first: the checkpoint (the commit point) names it as a parent
+                adapter = workspace.api.register_dir(
+                    adapter_dir, kind="adapter", name=f"{step} adapter",
+                    config={"adapter": cfg.adapter, "summary": summary}, parents=parents, **meta,
+                )
+                parents.append((adapter.id, "adapter"))
+            record_config = {
+                "train_step": cfg.model_dump(mode="json"),
+                "cache_key": key,
+                "summary": summary,
+                "curve": _curve_rows(result.loss_curve_path),
+            }
             checkpoint = workspace.api.register_file(
                 weights, kind="checkpoint", name=step, config=record_config, parents=parents, **meta
             )
-            _register_log(workspace, result.loss_curve_path, summary, step, checkpoint.id, meta)
-            if adapter_dir is not None:
-                workspace.api.register_dir(
-                    adapter_dir,
-                    kind="adapter",
-                    name=f"{step} adapter",
-                    config={"adapter": cfg.adapter},
-                    parents=[(checkpoint.id, "adapter_of")],
-                    **meta,
-                )
         workspace.finish_run_dir(key)
         return checkpoint.id
 
     return cached_step(workspace, "train", inputs, config, produce)
 
 
-def _register_log(
-    workspace: Workspace, curve: Path, summary: dict, step: str, checkpoint_id: str, meta: dict
-) -> None:
-    """The loss curve (JSONL rows) and the run summary, as a `training_log` child of the checkpoint."""
-    rows = [json.loads(line) for line in curve.read_text().splitlines() if line.strip()]
-    workspace.api.register_json(
-        {"summary": summary, "curve": rows},
-        kind="training_log",
-        name=f"{step} log",
-        parents=[(checkpoint_id, "log_of")],
-        **meta,
-    )
+def _curve_rows(path: Path) -> list[dict[str, Any]]:
+    """The loss curve (one JSON row per logged step), kept in the checkpoint's record."""
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 @pipeline_task("train")

@@ -128,7 +128,6 @@ def test_a_killed_flow_resumes_from_cached_steps(smoke_home, tmp_path):
     assert dict(frame.values.tolist()) == {
         "dataset": 3,
         "checkpoint": 7,
-        "training_log": 7,
         "vector": 1,
         "vector_stats": 1,
         "evaluation": 3,

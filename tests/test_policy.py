@@ -133,7 +133,7 @@ def test_tokenizer_is_deterministic_and_padded():
 
 
 def test_saved_file_is_byte_identical_across_processes(tmp_path):
-    """Content-addressed artifacts need reproducible bytes (safetensors' own writer orders metadata randomly)."""
+    """Content-addressed artifacts need reproducible bytes (safetensors orders metadata randomly)."""
     import hashlib
     import subprocess
     import sys
