@@ -453,17 +453,24 @@ def main() -> None:
 
     try:
         app(standalone_mode=False)
-    except (ValueError, ArtifactError, CheckpointError, ValidationError, FileNotFoundError) as exc:
+    except (
+        ValueError,
+        ArtifactError,
+        CheckpointError,
+        ValidationError,
+        FileNotFoundError,
+        FileExistsError,
+    ) as exc:
         err.print(f"[bold red]error:[/] {exc}")
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except typer.Abort:
         sys.exit(130)
-    except Exception as exc:  # click's usage errors
-        import click
+    except Exception as exc:  # click's usage errors (typer vendors click: not `click.ClickException`)
+        from typer._click.exceptions import ClickException
 
-        if isinstance(exc, click.ClickException):
+        if isinstance(exc, ClickException):
             exc.show()
             sys.exit(exc.exit_code)
         raise

@@ -1,0 +1,327 @@
+"""The `capvector` CLI: vector arithmetic against torch, catalogue registration and lineage, the
+catalogue commands, and the clear errors (exit 2, nothing written) for bad input.
+
+Error paths go through the real console entry point (`run_cli`, a subprocess): its exit codes and
+messages are what a user sees. Read-only happy paths use typer's CliRunner on the same app.
+"""
+
+import json
+import re
+
+import pytest
+import torch
+from conftest import run_cli
+from safetensors.torch import load_file, save_file
+from typer.testing import CliRunner
+
+from artifacts.api import ArtifactsAPI
+from capvector_core.safetensors_io import Checkpoint
+from flows.cli import app
+
+SHAPES = {"blocks.0.attn.weight": (6, 4), "blocks.0.attn.bias": (6,), "blocks.1.mlp.weight": (3, 6)}
+
+
+def _random_checkpoint(seed: int, scale: float = 1.0, base: dict | None = None) -> dict:
+    gen = torch.Generator().manual_seed(seed)
+    return {
+        k: (base[k] if base else 0) + scale * torch.randn(shape, generator=gen) for k, shape in SHAPES.items()
+    }
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory) -> dict:
+    """θ_pt, θ_ft, θ_ao as small random single-file checkpoints, plus two that do not match them."""
+    root = tmp_path_factory.mktemp("ckpts")
+    pt = _random_checkpoint(0)
+    ft = _random_checkpoint(1, 0.1, pt)
+    ao = _random_checkpoint(2, 0.1, ft)
+    missing = {k: v for k, v in ao.items() if k != "blocks.1.mlp.weight"}
+    reshaped = {**ao, "blocks.0.attn.bias": torch.randn(7)}
+    paths = {}
+    for name, tensors in [("pt", pt), ("ft", ft), ("ao", ao), ("missing", missing), ("reshaped", reshaped)]:
+        paths[name] = root / f"{name}.safetensors"
+        save_file(tensors, str(paths[name]))
+    return {"paths": paths, "pt": pt, "ft": ft, "ao": ao}
+
+
+def _edges_into(api: ArtifactsAPI, child_name: str) -> dict[str, list[tuple[str, dict | None]]]:
+    """{parent name: [(role, attrs)]} for the edges into the artifact called `child_name`."""
+    frame = api.query(
+        "SELECT p.name AS parent, e.role, e.attrs FROM edges e "
+        "JOIN artifacts p ON p.id = e.parent JOIN artifacts c ON c.id = e.child WHERE c.name = ?",
+        [child_name],
+    )
+    out: dict[str, list] = {}
+    for r in frame.itertuples():
+        attrs = json.loads(r.attrs) if isinstance(r.attrs, str) else r.attrs
+        out.setdefault(r.parent, []).append((r.role, attrs))
+    return out
+
+
+def _kind_count(home, kind: str) -> int:
+    return int(
+        ArtifactsAPI(str(home)).query("SELECT count(*) AS n FROM artifacts WHERE kind = ?", [kind])["n"][0]
+    )
+
+
+def invoke(home, *args: str):
+    result = CliRunner().invoke(app, ["--home", str(home), *args])
+    assert result.exit_code == 0, (result.output, result.exception)
+    return result
+
+
+# ---------------------------------------------------------------------------- vector arithmetic
+def test_extract_merge_stats_match_torch_and_register_lineage(ckpts, tmp_path):
+    home, p = tmp_path / "home", ckpts["paths"]
+    gamma, delta, merged = tmp_path / "gamma.safetensors", tmp_path / "delta.safetensors", tmp_path / "merged"
+
+    run_cli(
+        "vector", "extract", str(p["ao"]), str(p["ft"]), "-o", str(gamma), "--base", str(p["pt"]), home=home
+    )
+    run_cli("vector", "extract", str(p["ft"]), str(p["pt"]), "-o", str(delta), home=home)
+    got = load_file(str(gamma))
+    assert set(got) == set(SHAPES)
+    for k in SHAPES:
+        torch.testing.assert_close(got[k], ckpts["ao"][k] - ckpts["ft"][k], rtol=0, atol=0)
+
+    run_cli(
+        "vector", "merge", str(p["pt"]),
+        "--vector", str(gamma), "--alpha", "1.1", "--vector", str(delta), "--alpha", "-0.5",
+        "-o", str(merged), home=home,
+    )  # fmt: skip
+    assert merged.is_dir() and list(merged.glob("*.index.json")), sorted(merged.iterdir())
+    out = Checkpoint(merged)
+    assert sorted(out.keys()) == sorted(SHAPES)
+    for k in SHAPES:
+        g, d = ckpts["ao"][k] - ckpts["ft"][k], ckpts["ft"][k] - ckpts["pt"][k]
+        expected = ckpts["pt"][k].double() + 1.1 * g.double() - 0.5 * d.double()
+        torch.testing.assert_close(out.get(k).double(), expected, rtol=1e-6, atol=1e-6)
+        assert out.get(k).dtype == torch.float32
+
+    proc = run_cli("vector", "stats", str(gamma), "--base", str(p["pt"]), "--json", home=home)
+    rows = json.loads(proc.stdout)
+    tensors = {r["name"]: r for r in rows if r["level"] == "tensor"}
+    assert set(tensors) == set(SHAPES)
+    total_sq = total_base_sq = 0.0
+    for k in SHAPES:
+        g = (ckpts["ao"][k] - ckpts["ft"][k]).double()
+        assert tensors[k]["numel"] == g.numel()
+        assert tensors[k]["l2"] == pytest.approx(float(g.norm()), rel=1e-9)
+        base_norm = float(ckpts["pt"][k].double().norm())
+        assert tensors[k]["relative_norm"] == pytest.approx(float(g.norm()) / base_norm, rel=1e-9)
+        total_sq += float((g * g).sum())
+        total_base_sq += base_norm**2
+    (overall,) = [r for r in rows if r["level"] == "all"]
+    assert overall["numel"] == sum(torch.Size(s).numel() for s in SHAPES.values())
+    assert overall["l2"] == pytest.approx(total_sq**0.5, rel=1e-9)
+    assert overall["relative_norm"] == pytest.approx((total_sq / total_base_sq) ** 0.5, rel=1e-9)
+    groups = {r["name"] for r in rows if r["level"] == "group"}
+    assert groups == {"blocks.0", "blocks.1"}
+
+    # Inputs imported, outputs registered, one edge per input with its role (and α on vector edges).
+    api = ArtifactsAPI(str(home))
+    kinds = dict(api.query("SELECT name, kind FROM artifacts").values.tolist())
+    assert kinds["gamma"] == "vector" and kinds["delta"] == "vector" and kinds["merged"] == "checkpoint"
+    for name in ("pt.safetensors", "ft.safetensors", "ao.safetensors"):
+        assert kinds[name] == "checkpoint", kinds
+    assert {k: [r for r, _ in v] for k, v in _edges_into(api, "gamma").items()} == {
+        "ao.safetensors": ["minuend"],
+        "ft.safetensors": ["subtrahend"],
+        "pt.safetensors": ["base"],
+    }
+    merge_edges = _edges_into(api, "merged")
+    assert [r for r, _ in merge_edges["pt.safetensors"]] == ["base"]
+    assert [(r, a["alpha"]) for r, a in merge_edges["gamma"]] == [("vector", 1.1)]
+    assert [(r, a["alpha"]) for r, a in merge_edges["delta"]] == [("vector", -0.5)]
+    merged_id = api.query("SELECT id FROM artifacts WHERE name = 'merged'")["id"][0]
+    assert sorted((v.vector_name, v.alpha) for v in api.vectors_merged_into(merged_id)) == [
+        ("delta", -0.5),
+        ("gamma", 1.1),
+    ]
+    gamma_id = api.query("SELECT id FROM artifacts WHERE name = 'gamma'")["id"][0]
+    stats = api.query("SELECT tensor, l2 FROM vector_stats WHERE vector_id = ?", [gamma_id])
+    l2 = dict(stats.values.tolist())
+    assert l2["blocks.1.mlp.weight"] == pytest.approx(tensors["blocks.1.mlp.weight"]["l2"])
+
+    # The same operations by artifact id give the same bytes.
+    again = tmp_path / "again.safetensors"
+    ao_id = api.query("SELECT id FROM artifacts WHERE name = 'ao.safetensors'")["id"][0]
+    ft_id = api.query("SELECT id FROM artifacts WHERE name = 'ft.safetensors'")["id"][0]
+    invoke(home, "vector", "extract", ao_id[:12], ft_id, "-o", str(again))
+    for k, v in load_file(str(again)).items():
+        assert torch.equal(v, got[k]), k
+
+
+@pytest.mark.parametrize(
+    ("bad", "tensor"), [("missing", "blocks.1.mlp.weight"), ("reshaped", "blocks.0.attn.bias")]
+)
+def test_extract_of_mismatched_checkpoints_exits_2_naming_the_tensor(ckpts, tmp_path, bad, tensor):
+    home, out = tmp_path / "home", tmp_path / "gamma.safetensors"
+    proc = run_cli("vector", "extract", str(ckpts["paths"][bad]), str(ckpts["paths"]["ft"]), "-o", str(out),
+                   home=home, check=False)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert tensor in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists() and not list(tmp_path.glob("gamma*"))
+    assert _kind_count(home, "vector") == 0
+
+
+def test_merge_with_mismatched_vector_exits_2_and_writes_nothing(ckpts, tmp_path):
+    home, out = tmp_path / "home", tmp_path / "merged"
+    proc = run_cli("vector", "merge", str(ckpts["paths"]["pt"]), "--vector", str(ckpts["paths"]["reshaped"]),
+                   "--alpha", "1.0", "-o", str(out), home=home, check=False)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert "blocks.0.attn.bias" in proc.stderr
+    assert not out.exists() and [x.name for x in tmp_path.iterdir()] == ["home"]
+    frame = ArtifactsAPI(str(home)).query("SELECT count(*) AS n FROM artifacts WHERE name = 'merged'")
+    assert frame["n"][0] == 0
+
+
+def test_merge_needs_one_alpha_per_vector(ckpts, tmp_path):
+    home, out, p = tmp_path / "home", tmp_path / "merged", ckpts["paths"]
+    proc = run_cli("vector", "merge", str(p["pt"]), "--vector", str(p["ft"]), "--vector", str(p["ao"]),
+                   "--alpha", "1.1", "-o", str(out), home=home, check=False)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert "2 --vector but 1 --alpha" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists()
+
+
+def test_existing_output_is_refused(ckpts, tmp_path):
+    home, out, p = tmp_path / "home", tmp_path / "gamma.safetensors", ckpts["paths"]
+    out.write_bytes(b"keep me")
+    proc = run_cli("vector", "extract", str(p["ao"]), str(p["ft"]), "-o", str(out), home=home, check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert "already exists" in proc.stderr and "Traceback" not in proc.stderr
+    assert out.read_bytes() == b"keep me"
+
+
+# ---------------------------------------------------------------------------- catalogue commands
+def test_import_list_show_and_sql(ckpts, tmp_path):
+    home = tmp_path / "home"
+    proc = run_cli("import", str(ckpts["paths"]["pt"]), "--name", "outside-pt", home=home)
+    (artifact_id,) = re.findall(r"\b[0-9a-f]{64}\b", proc.stdout)
+
+    listed = json.loads(invoke(home, "artifacts", "list", "--json").stdout)
+    assert [(r["id"], r["kind"], r["name"]) for r in listed] == [(artifact_id, "checkpoint", "outside-pt")]
+    assert listed[0]["size_bytes"] == ckpts["paths"]["pt"].stat().st_size
+
+    shown = json.loads(invoke(home, "artifacts", "show", artifact_id[:10]).stdout)
+    assert shown["id"] == artifact_id and shown["kind"] == "checkpoint"
+    assert shown["config"]["imported_from"] == str(ckpts["paths"]["pt"].resolve())
+    stored = ArtifactsAPI(str(home)).path(artifact_id)
+    assert load_file(str(stored)).keys() == ckpts["pt"].keys()
+
+    rows = json.loads(
+        invoke(home, "sql", "SELECT kind, count(*) AS n FROM artifacts GROUP BY kind", "--json").stdout
+    )
+    assert rows == [{"kind": "checkpoint", "n": 1}]
+    refused = run_cli("sql", "DELETE FROM artifacts", home=home, check=False)
+    assert refused.returncode == 2 and "only reading statements" in refused.stderr, refused.stderr
+    assert _kind_count(home, "checkpoint") == 1
+
+
+def test_import_of_a_truncated_file_exits_2_and_registers_nothing(ckpts, tmp_path):
+    home, broken = tmp_path / "home", tmp_path / "broken.safetensors"
+    broken.write_bytes(ckpts["paths"]["pt"].read_bytes()[:-10])
+    proc = run_cli("import", str(broken), home=home, check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert _kind_count(home, "checkpoint") == 0
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (("artifacts", "show", "0123456789abcdef"), "0123456789abcdef"),
+        (("artifacts", "show", "not-an-id!"), "not-an-id!"),
+        (("lineage", "abcdef012345"), "abcdef012345"),
+        (("scores", "XYZ"), "XYZ"),
+    ],
+)
+def test_unknown_or_malformed_artifact_id_is_a_clear_error(tmp_path, args, needle):
+    proc = run_cli(*args, home=tmp_path / "home", check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert needle in proc.stderr and "error" in proc.stderr and "Traceback" not in proc.stderr
+
+
+# ---------------------------------------------------------------------------- config and schedule
+def test_unknown_override_key_is_named(tmp_path):
+    proc = run_cli(
+        "run", "--preset", "smoke", "--set", "pretrain.stepz=3", home=tmp_path / "home", check=False
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "pretrain.stepz" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "home").exists() or _kind_count(tmp_path / "home", "dataset") == 0
+
+
+def test_schedule_check_validates_the_cron(tmp_path):
+    bad = run_cli("schedule", "--cron", "not a cron", "--check", home=tmp_path, check=False)
+    assert bad.returncode == 2 and "invalid cron expression 'not a cron'" in bad.stderr, bad.stderr
+    good = run_cli("schedule", "--cron", "0 3 * * *", "--check", home=tmp_path)
+    assert "scheduled-reevaluation" in good.stdout and "0 3 * * *" in good.stdout
+
+
+# ---------------------------------------------------------------------------- on the smoke run
+def test_lineage_formats_and_descendants(smoke_home):
+    home, ids = smoke_home
+    capvector = ids["checkpoints"]["capvector/seed0"]
+    rows = json.loads(invoke(home, "lineage", capvector[:12], "--format", "json").stdout)
+    by_id = {r["id"]: r for r in rows}
+    assert by_id[capvector]["depth"] == 0
+    assert "init" in by_id[ids["meta"]]["roles"]
+    assert ids["vector"] in by_id and ids["pretrained"] in by_id
+    assert set(ids["datasets"].values()) <= set(by_id)
+
+    mermaid = invoke(home, "lineage", capvector, "--format", "mermaid").stdout
+    assert mermaid.startswith("graph BT")
+    assert re.search(rf'n{ids["meta"][:12]}\[[^\]]*\]"\] -->\|init\| n{capvector[:12]}', mermaid), mermaid
+    assert f"n{ids['vector'][:12]}" in mermaid
+
+    tree = invoke(home, "lineage", capvector).stdout
+    assert tree.splitlines()[0].endswith(f"[{capvector[:12]}]")
+    assert "(init) checkpoint" in tree and ids["meta"][:12] in tree and ids["vector"][:12] in tree
+
+    down = json.loads(invoke(home, "lineage", ids["vector"], "--descendants", "--format", "json").stdout)
+    down_ids = {r["id"] for r in down}
+    assert {ids["meta"], capvector} <= down_ids
+    assert ids["checkpoints"]["sft/seed0"] not in down_ids  # θ_pt + SFT never saw γ
+    assert invoke(home, "lineage", ids["vector"], "--descendants", "--format", "mermaid").stdout.startswith(
+        "graph TD"
+    )
+
+
+def test_scores_compare_and_report(smoke_home, tmp_path):
+    home, ids = smoke_home
+    api = ArtifactsAPI(str(home))
+    capvector, sft = ids["checkpoints"]["capvector/seed0"], ids["checkpoints"]["sft/seed0"]
+    evaluation = api.get(ids["evaluations"]["capvector/seed0"])
+
+    rows = json.loads(invoke(home, "scores", capvector, "--json").stdout)
+    mine = [r for r in rows if r["evaluation_id"] == evaluation.id]
+    assert [(r["checkpoint_id"], r["task"], r["n_episodes"], r["depth"]) for r in mine] == [
+        (capvector, "button-press-topdown-v3", 2, 0)
+    ]
+    assert mine[0]["success_rate"] == pytest.approx(
+        evaluation.config["success_rates"]["button-press-topdown-v3"]
+    )
+    fingerprint = mine[0]["fingerprint"]
+
+    png = tmp_path / "x.png"
+    result = json.loads(
+        invoke(
+            home, "compare", capvector, sft, "--fingerprint", fingerprint, "--plot", str(png), "--json"
+        ).stdout
+    )
+    assert [r["checkpoint_id"] for r in result["rows"]] == [capvector, sft]
+    assert result["fingerprint"] == fingerprint
+    assert result["rows"][0]["success_rates"] == evaluation.config["success_rates"]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    out = tmp_path / "tmp" / "results.md"
+    invoke(home, "report", ids["report"], "-o", str(out))
+    text = out.read_text()
+    assert text.startswith("#") and ids["report"][:12] in text
+    figures = re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", text)
+    assert {"results_comparison.png", "results_vector.png", "results_curves.png"} <= set(figures), figures
+    for name in figures:
+        assert (out.parent / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    for arm in ("sft", "aux", "capvector"):
+        assert ids["evaluations"][f"{arm}/seed0"][:12] in text, arm
