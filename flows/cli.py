@@ -336,13 +336,26 @@ def report(
     out: Annotated[Path, typer.Option("-o", "--out", help="Markdown file to write")] = Path(
         "docs/results.md"
     ),
+    section: Annotated[
+        list[str] | None,
+        typer.Option(help="'TITLE=REPORT_ID': another report as an extra table (repeatable)"),
+    ] = None,
+    sweep_id: Annotated[str | None, typer.Option("--sweep", help="a sweep artifact to include")] = None,
+    notes: Annotated[Path | None, typer.Option(help="a Markdown file of analysis to include")] = None,
     home: HomeOption = None,
 ) -> None:
-    """Markdown + PNG figures: comparison, vector statistics per layer, training curves."""
+    """Markdown + PNG figures: comparison, convergence, sweep, vector statistics, training curves."""
     from flows.report import latest_report_id, write_report
 
+    sections = {}
+    for item in section or []:
+        if "=" not in item:
+            raise typer.BadParameter(f"--section {item!r} must look like 'TITLE=REPORT_ID'")
+        title, rid = item.rsplit("=", 1)
+        sections[title] = rid
     ws = _workspace(home)
-    path = write_report(ws, report_id or latest_report_id(ws), out)
+    text = notes.read_text() if notes else None
+    path = write_report(ws, report_id or latest_report_id(ws), out, sections, sweep_id, text)
     console.print(f"wrote {path}")
 
 

@@ -70,13 +70,80 @@ def plot_curves(curves: dict[str, list[dict[str, Any]]], path: Path) -> Path:
     return path
 
 
-def write_report(workspace: Workspace, report_id: str, out: Path) -> Path:
-    """Write `out` (Markdown) and its figures beside it; returns the Markdown path."""
+def _vector_of(workspace: Workspace, table: dict[str, Any]) -> str | None:
+    """The capability vector behind this report's runs (merged into, or regularizing, a checkpoint)."""
+    for row in table["arms"].values():
+        for run in row["runs"]:
+            merged = workspace.api.vectors_merged_into(run["checkpoint_id"])
+            if merged:
+                return merged[0].vector_id
+    return None
+
+
+def _steps_of(workspace: Workspace, checkpoint_id: str) -> int | None:
+    step = workspace.api.get(checkpoint_id).config.get("train_step", {})
+    return step.get("train", {}).get("steps")
+
+
+def plot_convergence(points: dict[str, list[tuple[int, float, float]]], path: Path) -> Path:
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    for arm, rows in sorted(points.items()):
+        rows = sorted(rows)
+        ax.errorbar(
+            [r[0] for r in rows],
+            [100 * r[1] for r in rows],
+            yerr=[100 * r[2] for r in rows],
+            label=arm,
+            marker="o",
+            capsize=3,
+            lw=1,
+        )
+    ax.set_xlabel("downstream training steps (budget)")
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _sweep_section(workspace: Workspace, sweep_id: str) -> str:
+    from flows.sweep import sweep_markdown
+
+    doc = workspace.api.store.open_json(workspace.api.get(sweep_id).id)
+    best = doc["best"]
+    return (
+        f"\n## α × λ sweep `{sweep_id[:12]}` "
+        f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']})\n\n"
+        + sweep_markdown(doc)
+        + f"\nChosen: α = {best['alpha']}, λ = {best['lambda']} (validation success "
+        f"{100 * best['validation_success']:.1f}%). Test seeds were not used for the choice.\n"
+    )
+
+
+def write_report(
+    workspace: Workspace,
+    report_id: str,
+    out: Path,
+    sections: dict[str, str] | None = None,
+    sweep_id: str | None = None,
+    notes: str | None = None,
+) -> Path:
+    """Write `out` (Markdown) and its figures beside it; returns the Markdown path.
+
+    `sections`: title -> another report id (ablations, other budgets), shown as extra tables; when
+    the reports differ in downstream budget, a success-vs-steps figure is drawn from all of them.
+    """
     record = workspace.api.get(report_id)
     table = workspace.api.store.open_json(record.id)
     out.parent.mkdir(parents=True, exist_ok=True)
     stem = out.stem
     figures = {"comparison": plot_comparison(table, out.parent / f"{stem}_comparison.png")}
+    extra = {
+        title: workspace.api.store.open_json(workspace.api.get(rid).id)
+        for title, rid in (sections or {}).items()
+    }
 
     curves = {}
     for arm, row in table["arms"].items():
@@ -87,14 +154,20 @@ def write_report(workspace: Workspace, report_id: str, out: Path) -> Path:
     if curves:
         figures["curves"] = plot_curves(curves, out.parent / f"{stem}_curves.png")
 
+    points: dict[str, list[tuple[int, float, float]]] = {}
+    for tab in [table, *extra.values()]:
+        for arm, row in tab["arms"].items():
+            steps = _steps_of(workspace, row["runs"][0]["checkpoint_id"])
+            if steps:
+                points.setdefault(arm, []).append((steps, row["overall"]["mean"], row["overall"]["std"]))
+    if len({p[0] for rows in points.values() for p in rows}) > 1:
+        figures["convergence"] = plot_convergence(points, out.parent / f"{stem}_convergence.png")
+
     vector_section = ""
-    checkpoint = next(iter(table["arms"].values()))["runs"][0]["checkpoint_id"] if table["arms"] else None
-    vectors = workspace.api.query(
-        "SELECT DISTINCT vector_id, stats_id FROM vector_stats WHERE vector_id IN "
-        "(SELECT parent FROM edges WHERE role IN ('vector', 'regularized_by'))"
-    )
-    if not vectors.empty and checkpoint:
-        vector_id, stats_id = str(vectors.iloc[0, 0]), str(vectors.iloc[0, 1])
+    vector_id = _vector_of(workspace, table)
+    stats = workspace.api.query("SELECT DISTINCT stats_id FROM vector_stats WHERE vector_id = ?", [vector_id])
+    if vector_id and not stats.empty:
+        stats_id = str(stats.iloc[0, 0])
         rows = workspace.api.store.open_json(stats_id)["tensors"]
         figures["vector"] = plot_vector_stats(rows, out.parent / f"{stem}_vector.png")
         overall = next((r for r in rows if r.get("level") == "all"), None)
@@ -108,22 +181,32 @@ def write_report(workspace: Workspace, report_id: str, out: Path) -> Path:
             )
 
     runs = ["| run | checkpoint | evaluation | success |", "|---|---|---|---|"]
-    for row in table["arms"].values():
-        for run in row["runs"]:
-            runs.append(
-                f"| {run['label']} | `{run['checkpoint_id'][:12]}` | `{run['evaluation_id'][:12]}` | "
-                f"{100 * run['mean_success']:.1f}% |"
-            )
-    text = (
-        f"# capvector report `{record.id[:12]}` ({record.name})\n\n"
-        "Success rates in %, mean ± std over training seeds, final checkpoints only, "
-        "test goal variations.\n\n"
-        f"{table['markdown']}\n![comparison]({figures['comparison'].name})\n\n"
-        f"## Runs\n\n"
-        + "\n".join(runs)
-        + "\n"
-        + vector_section
-        + (f"\n## Training curves\n\n![curves]({figures['curves'].name})\n" if "curves" in figures else "")
-    )
-    out.write_text(text)
+    for tab in [table, *extra.values()]:
+        for row in tab["arms"].values():
+            for run in row["runs"]:
+                runs.append(
+                    f"| {run['label']} | `{run['checkpoint_id'][:12]}` | `{run['evaluation_id'][:12]}` | "
+                    f"{100 * run['mean_success']:.1f}% |"
+                )
+    parts = [
+        f"# capvector report `{record.id[:12]}` ({record.name})\n\n",
+        "Success rates in %, mean ± std over training seeds, final checkpoints only, test goal variations "
+        "(evaluation seeds, disjoint from demonstration and validation seeds). Every id is a catalogue id: "
+        "`capvector lineage ID` traces it to its data.\n\n",
+        notes + "\n\n" if notes else "",
+        f"## Comparison\n\n{table['markdown']}\n![comparison]({figures['comparison'].name})\n",
+    ]
+    for title, tab in extra.items():
+        parts.append(f"\n## {title} (`{(sections or {})[title][:12]}`)\n\n{tab['markdown']}")
+    if "convergence" in figures:
+        parts.append(
+            f"\n## Success against training steps\n\n![convergence]({figures['convergence'].name})\n"
+        )
+    if sweep_id:
+        parts.append(_sweep_section(workspace, sweep_id))
+    parts.append(vector_section)
+    if "curves" in figures:
+        parts.append(f"\n## Training curves\n\n![curves]({figures['curves'].name})\n")
+    parts.append("\n## Runs\n\n" + "\n".join(runs) + "\n")
+    out.write_text("".join(parts))
     return out
