@@ -29,9 +29,15 @@ from tasks.code_version import code_version
 from tasks.workspace import Workspace
 
 
-def content_key(kind: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+def content_key(kind: str, inputs: dict[str, str], config: dict[str, Any], module: str) -> str:
+    """`module`: the step's module; its import closure is the code version (tasks.code_version)."""
     payload = json.dumps(
-        {"kind": kind, "inputs": dict(sorted(inputs.items())), "config": config, "code": code_version()},
+        {
+            "kind": kind,
+            "inputs": dict(sorted(inputs.items())),
+            "config": config,
+            "code": code_version(module),
+        },
         sort_keys=True,
         default=str,
     )
@@ -82,7 +88,7 @@ def cached_step(
     produce: Callable[[str], str],
 ) -> str:
     """Return the artifact for this step's content key, calling `produce(key)` only when needed."""
-    key = content_key(kind, inputs, config)
+    key = content_key(kind, inputs, config, produce.__module__)
     existing = lookup(workspace, key)
     if existing is not None:
         return existing
@@ -112,5 +118,10 @@ def prefect_cache_key(context: Any, parameters: dict[str, Any]) -> str:
     config are the same computation.
     """
     workspace = Workspace(parameters["home"])
-    key = content_key(context.task.name, parameters.get("inputs") or {}, parameters.get("config") or {})
+    key = content_key(
+        context.task.name,
+        parameters.get("inputs") or {},
+        parameters.get("config") or {},
+        context.task.fn.__module__,
+    )
     return _prefect_key(key, lookup(workspace, key))

@@ -1,30 +1,69 @@
-"""The code version that goes into every cache key and artifact record.
+"""The code version that goes into every cache key: a hash of the source a step actually runs.
 
 Prefect's default cache policy hashes only the task's own source; a change in a helper it calls
-(a loss, a data loader) would silently reuse stale results. We hash every Python source file of
-the packages whose behaviour decides an artifact's content.
+(a loss, a data loader) would silently reuse stale results. Hashing every file of the project
+would be safe but would throw away all cached demos whenever, say, the report code changes. So a
+step's version hashes the transitive closure of the project modules its module imports (found by
+parsing `import` statements), and nothing else.
 """
 
 from __future__ import annotations
 
+import ast
 import functools
 import hashlib
+import importlib.util
 from pathlib import Path
 
-import capvector_core
-import tasks
+PROJECT_PACKAGES = ("capvector_core", "tasks", "artifacts")
 
-_PACKAGES = (capvector_core, tasks)
+
+def _source_path(module: str) -> Path | None:
+    """The module's .py file; None for names that are not modules (`from pkg.mod import Class`)."""
+    try:
+        spec = importlib.util.find_spec(module)
+    except (ImportError, AttributeError, ValueError):
+        return None
+    return Path(spec.origin) if spec and spec.origin and spec.origin.endswith(".py") else None
+
+
+def _imports(path: Path, module: str) -> set[str]:
+    """Project modules imported by a file (absolute imports, and `from package import module`)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+        else:
+            continue
+        for name in names:
+            if name.split(".")[0] in PROJECT_PACKAGES and _source_path(name) is not None:
+                found.add(name)
+    return found - {module}
 
 
 @functools.cache
-def code_version() -> str:
-    """sha256 (hex, 16 chars) over the relative paths and bytes of all package sources."""
+def module_closure(module: str) -> tuple[str, ...]:
+    """`module` and every project module it imports, directly or not (sorted)."""
+    seen, todo = set(), [module]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        path = _source_path(name)
+        if path is not None:
+            todo.extend(_imports(path, name) - seen)
+    return tuple(sorted(seen))
+
+
+@functools.cache
+def code_version(module: str) -> str:
+    """sha256 (16 hex chars) over the names and bytes of the sources in `module`'s closure."""
     digest = hashlib.sha256()
-    for package in _PACKAGES:
-        root = Path(package.__file__).parent
-        for path in sorted(root.rglob("*.py")):
-            digest.update(f"{package.__name__}/{path.relative_to(root).as_posix()}\0".encode())
-            digest.update(path.read_bytes())
-            digest.update(b"\0")
+    for name in module_closure(module):
+        path = _source_path(name)
+        if path is not None:
+            digest.update(f"{name}\0".encode() + path.read_bytes() + b"\0")
     return digest.hexdigest()[:16]
