@@ -178,6 +178,8 @@ class ArtifactStore:
         task_run_id: str | None,
     ) -> ArtifactRecord:
         committed = self.fs.exists(self.sidecar_path(artifact_id))
+        if committed and not self._intact(artifact_id):
+            self._repair_with(staged, artifact_id, layout, entries)
         self._commit_object(staged, artifact_id)  # no-op when present; restores a deleted object otherwise
         if committed:
             return self.get(artifact_id)  # written before: content addressing makes this idempotent
@@ -419,6 +421,23 @@ class ArtifactStore:
             for entry in record.files:
                 entry.mtime_ns = mtimes.get(entry.path, entry.mtime_ns)
             self._write_small(self.sidecar_path(record.id), record.model_dump_json(indent=1).encode())
+
+    def _repair_with(self, staged: str, artifact_id: str, layout: str, entries: list) -> None:
+        """The same content again, over a damaged or missing copy: the fresh bytes replace it.
+
+        A single file keeps the name its sidecar recorded (the id covers bytes, not names).
+        """
+        record = self._load_sidecar(artifact_id)
+        if layout == "file" and record.files and entries[0][0] != record.files[0].path:
+            self.fs.mv(posixpath.join(staged, entries[0][0]), posixpath.join(staged, record.files[0].path))
+        self._discard(self.object_path(artifact_id))
+
+    def _intact(self, artifact_id: str) -> bool:
+        try:
+            self._verify(self._load_sidecar(artifact_id), verify=True)
+        except (CorruptArtifact, OSError):
+            return False
+        return True
 
     def _verify(self, record: ArtifactRecord, verify: bool) -> None:
         """Re-hash a file when asked, or whenever its size or mtime moved since it was recorded."""
