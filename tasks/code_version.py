@@ -15,7 +15,8 @@ import hashlib
 import importlib.util
 from pathlib import Path
 
-PROJECT_PACKAGES = ("capvector_core", "tasks", "artifacts")
+# The packages whose code decides an artifact's content (the store and catalogue only keep it).
+PROJECT_PACKAGES = ("capvector_core", "tasks")
 
 
 def _source_path(module: str) -> Path | None:
