@@ -162,7 +162,8 @@ def main() -> None:
         "- orthogonal regularizer overhead, full fine-tuning: "
         f"**{100 * result['orth_overhead_full']:+.1f}%** "
         f"(target ≤ 5%: {'met' if result['target_full_overhead_le_5pct'] else 'NOT met'}); the regularizer "
-        f"alone (forward + backward, {len(extra['orth'].names)} tensors) costs {result['orth_alone_ms']:.2f} ms = "
+        f"alone (forward + backward, {len(extra['orth'].names)} tensors) costs "
+        f"{result['orth_alone_ms']:.2f} ms = "
         f"{100 * result['orth_alone_share_of_full_step']:.1f}% of the fastest full step",
         f"- LoRA + A-only regularizer: {100 * result['orth_a_overhead_lora']:+.1f}%; LoRA + exact (B·A) "
         f"regularizer: {100 * result['orth_exact_overhead_lora']:+.1f}%",
