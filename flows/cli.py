@@ -474,7 +474,7 @@ def main() -> None:
         FileNotFoundError,
         FileExistsError,
     ) as exc:
-        err.print(f"[bold red]error:[/] {exc}")
+        err.print(f"[bold red]error:[/] {exc}", soft_wrap=True)  # ids and paths stay whole
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
