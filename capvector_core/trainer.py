@@ -278,14 +278,16 @@ def _param_groups(params: list[nn.Parameter], weight_decay: float) -> list[dict]
 def _progress(enabled: bool, total: int, start: int):
     if not enabled:
         return nullcontext(None)
+    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    bar = Progress(
+    bar = Progress(  # on stderr: stdout may carry data (e.g. `capvector run --json`)
         TextColumn("train"),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("{task.fields[loss]}"),
         TimeRemainingColumn(),
+        console=Console(stderr=True),
     )
     bar.add_task("train", total=total, completed=start, loss="")
     return bar
