@@ -27,16 +27,24 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def run_cli(*args: str, home: Path, check: bool = True, timeout: float = 600) -> subprocess.CompletedProcess:
-    """The real console entry point in a subprocess, as a user runs it."""
+    """The real console entry point in a subprocess, as a user runs it.
+
+    Output goes through files, not pipes: a grandchild that outlives the command (Prefect's
+    embedded API server on its way down) must not keep the test waiting for end-of-file.
+    """
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
-    proc = subprocess.run(
-        [sys.executable, "-m", "flows.cli", *args],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        code = subprocess.run(
+            [sys.executable, "-m", "flows.cli", *args],
+            cwd=REPO,
+            env=env,
+            stdout=out,
+            stderr=err,
+            timeout=timeout,
+        ).returncode
+        out.seek(0)
+        err.seek(0)
+        proc = subprocess.CompletedProcess(args, code, out.read(), err.read())
     if check and proc.returncode != 0:
         raise AssertionError(f"capvector {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     return proc

@@ -9,7 +9,7 @@ import sys
 import time
 
 import pytest
-from conftest import REPO
+from conftest import REPO, run_cli
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
@@ -116,9 +116,7 @@ def test_a_killed_flow_resumes_from_cached_steps(smoke_home, tmp_path):
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
 
-    done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-2000:]
-    resumed = json.loads(done.stdout)
+    resumed = json.loads(run_cli("run", "--preset", "smoke", "--json", home=home).stdout)
     assert resumed["datasets"] == reference["datasets"]
     for key in ("pretrained", "standard", "auxiliary", "meta"):
         assert resumed[key] == reference[key], (key, resumed, reference)
