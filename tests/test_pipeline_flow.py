@@ -40,14 +40,23 @@ def _run(home, overrides=()):
 def test_cold_run_produces_every_artifact(smoke_home):
     home, ids = smoke_home
     api = ArtifactsAPI(str(home))
-    kinds = dict(api.query("SELECT kind, count(*) AS n FROM artifacts GROUP BY kind").values.tolist())
+    cold_run = "SELECT flow_run_id FROM runs WHERE flow_name = 'pipeline' ORDER BY started_at LIMIT 1"
+    kinds = dict(
+        api.query(
+            f"SELECT kind, count(*) AS n FROM artifacts WHERE flow_run_id = ({cold_run}) GROUP BY kind"
+        ).values.tolist()
+    )
     assert kinds["dataset"] == 3
     assert kinds["checkpoint"] == 3 + 1 + 3  # θ_pt, θ_ft, θ_ao; θ_meta; three downstream arms
     assert kinds["vector"] == 1 and kinds["vector_stats"] == 1
     assert kinds["evaluation"] == 3 and kinds["report"] == 1
     report = api.store.open_json(ids["report"])
     assert set(report["arms"]) == {"sft", "aux", "capvector"}
-    assert api.query("SELECT count(*) AS n FROM eval_episodes")["n"][0] == 3 * 2  # arms × episodes
+    episodes = api.query(
+        "SELECT count(*) AS n FROM eval_episodes WHERE evaluation_id IN (?, ?, ?)",
+        list(ids["evaluations"].values()),
+    )
+    assert episodes["n"][0] == 3 * 2  # arms × episodes
 
 
 def test_second_run_hits_every_cache_and_creates_nothing(smoke_home):
