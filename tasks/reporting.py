@@ -50,7 +50,8 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
         arms[arm] = {
             "overall": _mean_std([r["mean_success"] for r in runs]),
             "per_task": {t: _mean_std([r["success_rates"][t] for r in runs]) for t in tasks},
-            "ms_per_step": 1000.0 / statistics.fmean(speeds) if speeds else None,
+            # median: a seed's run may be a cache hit trained under other load (a sweep cell)
+            "ms_per_step": 1000.0 / statistics.median(speeds) if speeds else None,
             "trainable_parameters": runs[0]["trainable_parameters"],
             "runs": runs,
         }
@@ -62,7 +63,7 @@ def markdown_table(table: dict[str, Any]) -> str:
     if not arms:
         return "(no evaluations)\n"
     tasks = sorted(next(iter(arms.values()))["per_task"])
-    head = ["arm", "overall"] + tasks + ["ms/step", "trainable params", "seeds"]
+    head = ["arm", "overall"] + tasks + ["ms/step (median)", "trainable params", "seeds"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for arm, row in arms.items():
         cells = [arm, _pct(row["overall"])] + [_pct(row["per_task"][t]) for t in tasks]
