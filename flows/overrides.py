@@ -64,13 +64,16 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[Base
     for text in overrides:
         path, value = parse_override(text)
         _check_path(model, path, ".".join(path))
-        node = result
+        node, current = result, model
         for part in path[:-1]:
+            field = current.model_fields[part]
             child = node.get(part)
             if not isinstance(child, dict):
-                child = {}
+                # Start from the field's default, so `lora_sp.bank_size=16` keeps the other defaults.
+                default = field.get_default(call_default_factory=True)
+                child = default.model_dump() if isinstance(default, BaseModel) else {}
                 node[part] = child
-            node = child
+            node, current = child, _model_in(field.annotation)
         node[path[-1]] = value
     return result
 

@@ -52,3 +52,9 @@ def test_downstream_tasks_must_be_new():
 def test_policy_and_data_modes_must_agree():
     with pytest.raises(ValidationError, match="obs_mode"):
         load_config("smoke", ["data.obs_mode=pixels"])
+
+
+def test_override_below_a_defaulted_section_keeps_its_other_defaults():
+    config = load_config("smoke", ["lora_sp.bank_size=16"])
+    assert config.lora_sp.bank_size == 16
+    assert config.lora_sp.target_modules == PipelineConfig.model_fields["lora_sp"].default.target_modules
