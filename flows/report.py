@@ -157,6 +157,9 @@ def write_report(
     points: dict[str, list[tuple[int, float, float]]] = {}
     for tab in [table, *extra.values()]:
         for arm, row in tab["arms"].items():
+            main_row = table["arms"].get(arm)
+            if main_row is None or row["overall"]["n"] != main_row["overall"]["n"]:
+                continue  # only budget variants of the comparison's own arms and seeds
             steps = _steps_of(workspace, row["runs"][0]["checkpoint_id"])
             if steps:
                 points.setdefault(arm, []).append((steps, row["overall"]["mean"], row["overall"]["std"]))

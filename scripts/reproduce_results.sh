@@ -19,9 +19,13 @@ chosen=(--set "alpha=$alpha" --set "orthogonal.weight=$lambda")
 
 # 2. The comparison: sft, aux, capvector, meta_sft (CapVector without the orthogonal loss), 3 seeds.
 main=$($cv run --preset quick "${chosen[@]}" --json | ids report)
-# 3. Convergence: the arms at half the downstream budget (same schedule shape, 400 steps).
+# 3. Convergence: the main arms at smaller downstream budgets (the schedule shape is the same).
 half=$($cv run --preset quick "${chosen[@]}" --set 'arms=[sft, aux, capvector]' --set downstream.steps=400 \
   --set downstream.checkpoint_every=200 --json | ids report)
+b200=$($cv run --preset quick "${chosen[@]}" --set 'arms=[sft, aux, capvector]' --set downstream.steps=200 \
+  --set downstream.warmup_steps=20 --set downstream.checkpoint_every=100 --json | ids report)
+b100=$($cv run --preset quick "${chosen[@]}" --set 'arms=[sft, aux, capvector]' --set downstream.steps=100 \
+  --set downstream.warmup_steps=10 --set downstream.checkpoint_every=100 --json | ids report)
 # 4. LoRA versions of (i) and (iii), seed 0 (CPU budget).
 lora=$($cv run --preset quick "${chosen[@]}" --set 'arms=[sft_lora, capvector_lora]' --set 'seeds=[0]' --json | ids report)
 # 5. γ masked to parts of the network (seed 0).
@@ -35,7 +39,9 @@ lorasp=$($cv run --preset quick "${chosen[@]}" --set 'arms=[sft_lora_sp, capvect
 
 $cv report "$main" -o docs/results.md --sweep "$sweep" --notes docs/results_notes.md \
   --section "Half the downstream budget (400 steps)=$half" \
+  --section "200 downstream steps=$b200" \
+  --section "100 downstream steps=$b100" \
   --section "LoRA (r=8) on attention, MLP and action head, seed 0=$lora" \
+  --section "LoRA-SP (bank 16, η=0.9), 400 steps, seed 0=$lorasp" \
   --section "γ masked to attention projections, seed 0=$attn" \
-  --section "γ masked to MLPs, seed 0=$mlp" \
-  --section "LoRA-SP (bank 16, η=0.9), 400 steps, seed 0=$lorasp"
+  --section "γ masked to MLPs, seed 0=$mlp"
