@@ -12,10 +12,16 @@ from __future__ import annotations
 
 import copy
 import functools
+import os
 import warnings
 from typing import Any, Literal
 
-import mujoco
+# Offscreen rendering needs a GL platform chosen before mujoco is imported; EGL works headless (the
+# user's own MUJOCO_GL wins).
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
+import mujoco  # noqa: E402
 import numpy as np
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 from metaworld.policies import ENV_POLICY_MAP
