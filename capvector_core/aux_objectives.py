@@ -19,6 +19,7 @@ time, its ``horizon``; the trainer supplies ``batch["privileged_future"]`` for t
 
 from __future__ import annotations
 
+import abc
 import math
 from collections.abc import Callable, Mapping
 from typing import Literal
@@ -60,7 +61,7 @@ def build_objective(name: str, policy_config: PolicyConfig, params: Mapping | No
     return cls(policy_config, cls.Params.model_validate(dict(params or {})))
 
 
-class AuxObjective(nn.Module):
+class AuxObjective(nn.Module, abc.ABC):
     name = ""
 
     class Params(BaseModel):
@@ -78,8 +79,9 @@ class AuxObjective(nn.Module):
         """Steps ahead the objective needs privileged state for (None: only the current step)."""
         return None
 
+    @abc.abstractmethod
     def required_fields(self) -> list[str]:
-        raise NotImplementedError
+        """Dataset fields this objective needs (checked before training starts)."""
 
     def fit(self, tensors: Mapping[str, torch.Tensor]) -> None:
         """Take standardization statistics of the privileged state from the training data."""
@@ -90,8 +92,9 @@ class AuxObjective(nn.Module):
     def standardize(self, privileged: torch.Tensor) -> torch.Tensor:
         return (privileged - self.privileged_mean) / self.privileged_std
 
+    @abc.abstractmethod
     def forward(self, policy_out: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        raise NotImplementedError
+        """The (unweighted) auxiliary loss for one batch."""
 
 
 def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:

@@ -17,6 +17,7 @@ torch.set_num_threads(2)
 
 
 import json  # noqa: E402
+import signal  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -26,28 +27,38 @@ import pytest  # noqa: E402
 REPO = Path(__file__).resolve().parent.parent
 
 
-def run_cli(*args: str, home: Path, check: bool = True, timeout: float = 600) -> subprocess.CompletedProcess:
+def run_cli(*args: str, home: Path, check: bool = True, timeout: float = 900) -> subprocess.CompletedProcess:
     """The real console entry point in a subprocess, as a user runs it.
 
-    Output goes through files, not pipes: a grandchild that outlives the command (Prefect's
-    embedded API server on its way down) must not keep the test waiting for end-of-file.
+    Output goes through files, not pipes, and the command runs in its own session whose leftovers are
+    killed afterwards: a grandchild that outlives the command (Prefect's embedded API server on its
+    way down) must neither keep the test waiting for end-of-file nor linger.
     """
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        code = subprocess.run(
+        proc = subprocess.Popen(
             [sys.executable, "-m", "flows.cli", *args],
             cwd=REPO,
             env=env,
             stdout=out,
             stderr=err,
-            timeout=timeout,
-        ).returncode
+            start_new_session=True,
+        )
+        try:
+            code = proc.wait(timeout=timeout)
+        finally:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
         out.seek(0)
         err.seek(0)
-        proc = subprocess.CompletedProcess(args, code, out.read(), err.read())
-    if check and proc.returncode != 0:
-        raise AssertionError(f"capvector {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    return proc
+        result = subprocess.CompletedProcess(args, code, out.read(), err.read())
+    if check and result.returncode != 0:
+        raise AssertionError(
+            f"capvector {' '.join(args)} failed ({result.returncode}):\n{result.stderr[-3000:]}"
+        )
+    return result
 
 
 @pytest.fixture(scope="session")

@@ -297,8 +297,9 @@ def test_scores_compare_and_report(smoke_home, tmp_path):
     api = ArtifactsAPI(str(home))
     capvector, sft = ids["checkpoints"]["capvector/seed0"], ids["checkpoints"]["sft/seed0"]
     evaluation = api.get(ids["evaluations"]["capvector/seed0"])
+    protocol = api.store.open_json(evaluation.id)["fingerprint"]  # other tests add other protocols
 
-    rows = json.loads(invoke(home, "scores", capvector, "--json").stdout)
+    rows = json.loads(invoke(home, "scores", capvector, "--fingerprint", protocol, "--json").stdout)
     mine = [r for r in rows if r["evaluation_id"] == evaluation.id]
     assert [(r["checkpoint_id"], r["task"], r["n_episodes"], r["depth"]) for r in mine] == [
         (capvector, "button-press-topdown-v3", 2, 0)

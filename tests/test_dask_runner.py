@@ -2,55 +2,26 @@
 scores to the catalogue themselves."""
 
 import json
-import os
-import signal
-import subprocess
-import sys
 
-from conftest import REPO
+from conftest import run_cli
 
 from artifacts.api import ArtifactsAPI
 
 TASK = "button-press-topdown-v3"
 
 
-def _run_cli_to_files(*args: str, home, tmp_path) -> str:
-    """`capvector ARGS` with its output in files, not pipes: a helper process that outlives the command
-    (Prefect's ephemeral API server has been seen to) cannot hold the test up; it is stopped after."""
-    out, err = tmp_path / "stdout", tmp_path / "stderr"
-    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
-    with out.open("wb") as o, err.open("wb") as e:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "flows.cli", *args],
-            cwd=REPO,
-            env=env,
-            stdout=o,
-            stderr=e,
-            start_new_session=True,
-        )
-        try:
-            rc = proc.wait(timeout=900)
-        finally:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)  # leftovers in the session this test started
-            except ProcessLookupError:
-                pass
-    assert rc == 0, f"capvector {' '.join(args)} failed ({rc}):\n{err.read_text()[-3000:]}"
-    return out.read_text()
-
-
-def test_dask_evaluation_of_two_checkpoints(smoke_home, tmp_path):
+def test_dask_evaluation_of_two_checkpoints(smoke_home):
     home, ids = smoke_home
     checkpoints = [ids["checkpoints"]["sft/seed0"], ids["checkpoints"]["capvector/seed0"]]
     api = ArtifactsAPI(str(home))
     before = set(api.query("SELECT DISTINCT evaluation_id FROM eval_tasks")["evaluation_id"])
 
-    stdout = _run_cli_to_files(
+    stdout = run_cli(
         "evaluate", checkpoints[0][:12], checkpoints[1],
         "--tasks", TASK, "--episodes", "2", "--horizon", "40",
         "--runner", "dask", "--workers", "2", "--json",
-        home=home, tmp_path=tmp_path,
-    )  # fmt: skip
+        home=home,
+    ).stdout  # fmt: skip
     rows = json.loads(stdout)
     assert [r["checkpoint"] for r in rows] == checkpoints
     evaluations = [r["evaluation"] for r in rows]
