@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated, Any
@@ -116,6 +119,8 @@ def evaluate(
     horizon: int = 500,
     execute_steps: Annotated[int, typer.Option(help="actions executed per predicted chunk")] = 1,
     obs_mode: str = "state",
+    camera: Annotated[str, typer.Option(help="pixels: camera (another tests generalization)")] = "corner2",
+    image_size: Annotated[int, typer.Option(help="image side for pixels policies")] = 64,
     runner: Annotated[str, typer.Option(help="thread | dask")] = "thread",
     workers: int = 2,
     home: HomeOption = None,
@@ -132,6 +137,8 @@ def evaluate(
         horizon=horizon,
         execute_steps=execute_steps,
         obs_mode=obs_mode,
+        camera=camera,
+        image_size=image_size,
     )
     flow_fn = evaluate_flow
     task_runner = _runner(runner, workers)
@@ -458,12 +465,42 @@ def _fmt(x: float | None) -> str:
     return "-" if x is None else f"{x:.4g}"
 
 
+def _descendant_pids(root: int) -> list[int]:
+    """Every live process below `root` (from /proc; empty where there is none, e.g. macOS)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, frontier = [], [root]
+    while frontier:
+        kids = children.get(frontier.pop(), [])
+        found += kids
+        frontier += kids
+    return found
+
+
+def _stop_descendants_on_sigterm() -> None:
+    """A terminated CLI takes its helpers along: Prefect's embedded API server and the step workers
+    would otherwise outlive it. Every step commits atomically, so stopping mid-step loses only that
+    step's unfinished work, exactly as a SIGKILL would."""
+
+    def stop(signum: int, _frame: Any) -> None:
+        for pid in _descendant_pids(os.getpid()):
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(pid, signal.SIGTERM)
+        os._exit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
 def main() -> None:
     """Console entry point: user errors print one clear line and exit 2, nothing half-written."""
     from pydantic import ValidationError
 
     from capvector_core.safetensors_io import CheckpointError
 
+    _stop_descendants_on_sigterm()
     try:
         app(standalone_mode=False)
     except (

@@ -13,6 +13,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE, DemoConfig
+from capvector_core.envs import CAMERAS
 from capvector_core.evaluation import EvalConfig
 from capvector_core.lora import LoraConfig
 from capvector_core.lora_sp import LoraSPConfig
@@ -89,6 +90,9 @@ class EvalSettings(BaseModel):
     horizon: int = Field(500, ge=1, le=500)
     execute_steps: int = Field(1, ge=1)
     batch_size: int = Field(64, ge=1)
+    # Out-of-distribution check (pixels only): the final checkpoints are also tested through this
+    # camera, which no demonstration was recorded with.
+    ood_camera: str | None = None
 
 
 class SweepSettings(BaseModel):
@@ -132,6 +136,14 @@ class PipelineConfig(BaseModel):
             raise ValueError(
                 f"policy.image_size ({self.policy.image_size}) differs from data.image_size "
                 f"({self.data.image_size})"
+            )
+        ood = self.evaluation.ood_camera
+        if ood is not None and ood not in CAMERAS:
+            raise ValueError(f"evaluation.ood_camera: unknown camera {ood!r}; Meta-World has {CAMERAS}")
+        if ood is not None and (self.data.obs_mode != "pixels" or ood == self.data.camera):
+            raise ValueError(
+                f"evaluation.ood_camera ({ood}) needs pixels observations and a camera other than "
+                f"data.camera ({self.data.camera}); obs_mode is {self.data.obs_mode}"
             )
         if len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"seeds must be distinct, got {self.seeds}")
@@ -179,7 +191,7 @@ class PipelineConfig(BaseModel):
     def merge_config(self, alpha: float | None = None) -> MergeConfig:
         return MergeConfig(alpha=self.alpha if alpha is None else alpha, **self.vector.model_dump())
 
-    def eval_config(self, validation: bool = False) -> EvalConfig:
+    def eval_config(self, validation: bool = False, camera: str | None = None) -> EvalConfig:
         return EvalConfig(
             tasks=self.splits.downstream,
             episodes_per_task=(
@@ -190,7 +202,7 @@ class PipelineConfig(BaseModel):
             seed_base=VALIDATION_SEED_BASE if validation else EVAL_SEED_BASE,
             horizon=self.evaluation.horizon,
             obs_mode=self.data.obs_mode,
-            camera=self.data.camera,
+            camera=camera or self.data.camera,
             image_size=self.data.image_size,
             execute_steps=self.evaluation.execute_steps,
             batch_size=self.evaluation.batch_size,

@@ -93,6 +93,20 @@ def step_runner(workers: int = 2) -> ProcessPoolTaskRunner:
     return ProcessPoolTaskRunner(max_workers=workers)
 
 
+def _submit_ood_report(home: str, config: PipelineConfig, checkpoints: dict[str, Any]) -> str | None:
+    """The same final checkpoints, tested through `evaluation.ood_camera`, in a report of their own."""
+    camera = config.evaluation.ood_camera
+    if camera is None:
+        return None
+    eval_config = _dump(config.eval_config(camera=camera))
+    evaluations = {
+        label: evaluate_task.submit(home, f"evaluate {label} ({camera})", {"checkpoint": ckpt}, eval_config)
+        for label, ckpt in checkpoints.items()
+    }
+    name = f"{config.name} ood camera {camera}"
+    return report_task.submit(home, f"report {name}", evaluations, {"name": name}).result()
+
+
 @flow(name="pipeline", log_prints=True, task_runner=step_runner())
 def pipeline(config: dict[str, Any], home: str) -> dict[str, Any]:
     """Run (or resume from cache) the recipe; returns the artifact ids of every product."""
@@ -111,6 +125,7 @@ def pipeline(config: dict[str, Any], home: str) -> dict[str, Any]:
             for label, ckpt in checkpoints.items()
         }
         report = report_task.submit(home, f"report {cfg.name}", evaluations, {"name": cfg.name}).result()
+        ood_report = _submit_ood_report(home, cfg, checkpoints)
         ids = {
             "datasets": {k: f.result() for k, f in stage["data"].items()},
             **{k: stage[k].result() for k in ("pretrained", "standard", "auxiliary", "vector", "meta")},
@@ -118,6 +133,8 @@ def pipeline(config: dict[str, Any], home: str) -> dict[str, Any]:
             "evaluations": {k: f.result() for k, f in evaluations.items()},
             "report": report,
         }
+        if ood_report is not None:
+            ids["ood_report"] = ood_report
         table = workspace.api.store.open_json(report)
         publish_markdown(f"{cfg.name}-summary", table["markdown"], f"capvector pipeline {cfg.name}")
     return ids

@@ -5,12 +5,19 @@ Error paths go through the real console entry point (`run_cli`, a subprocess): i
 messages are what a user sees. Read-only happy paths use typer's CliRunner on the same app.
 """
 
+import contextlib
 import json
+import os
 import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import REPO, run_cli
 from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
@@ -234,6 +241,8 @@ def test_import_of_a_truncated_file_exits_2_and_registers_nothing(ckpts, tmp_pat
         (("artifacts", "show", "not-an-id!"), "not-an-id!"),
         (("lineage", "abcdef012345"), "abcdef012345"),
         (("scores", "XYZ"), "XYZ"),
+        (("evaluate", "abcdef012345", "--tasks", "reach-v3", "--obs-mode", "pixels", "--camera", "cornr3"),
+         "cornr3"),
     ],
 )
 def test_unknown_or_malformed_artifact_id_is_a_clear_error(tmp_path, args, needle):
@@ -330,3 +339,37 @@ def test_scores_compare_and_report(smoke_home, tmp_path):
         assert (out.parent / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
     for arm in ("sft", "aux", "capvector"):
         assert ids["evaluations"][f"{arm}/seed0"][:12] in text, arm
+
+
+def _session_alive(sid: int) -> list[int]:
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":  # fields[3] is the session id
+            alive.append(int(stat.parent.name))
+    return alive
+
+
+def test_sigterm_stops_the_embedded_prefect_server_and_workers(tmp_path):
+    env = {**os.environ, "CAPVECTOR_HOME": str(tmp_path / "home"), "CAPVECTOR_QUIET": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke"],
+        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while len(_session_alive(proc.pid)) < 3 and time.monotonic() < deadline:  # CLI, uvicorn, workers
+            time.sleep(0.2)
+        assert proc.poll() is None and len(_session_alive(proc.pid)) >= 3, "helpers never started"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 30
+        while _session_alive(proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert _session_alive(proc.pid) == [], "processes outlived the terminated CLI"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)

@@ -7,7 +7,7 @@ from flows.config import ARMS, PipelineConfig, load_config
 from flows.overrides import ConfigKeyError
 
 
-@pytest.mark.parametrize("preset", ["smoke", "quick", "paper"])
+@pytest.mark.parametrize("preset", ["smoke", "quick", "hard", "paper", "paper-cpu"])
 def test_presets_validate(preset):
     config = load_config(preset)
     assert config.splits.downstream
@@ -58,3 +58,23 @@ def test_override_below_a_defaulted_section_keeps_its_other_defaults():
     config = load_config("smoke", ["lora_sp.bank_size=16"])
     assert config.lora_sp.bank_size == 16
     assert config.lora_sp.target_modules == PipelineConfig.model_fields["lora_sp"].default.target_modules
+
+
+def test_ood_camera_changes_only_the_camera_of_the_test_protocol():
+    config = load_config("paper-cpu", ["evaluation.ood_camera=corner3"])
+    test, ood = config.eval_config(), config.eval_config(camera="corner3")
+    assert (test.camera, ood.camera) == ("corner2", "corner3")
+    assert test.model_dump(exclude={"camera"}) == ood.model_dump(exclude={"camera"})
+
+
+@pytest.mark.parametrize(
+    ("preset", "camera", "message"),
+    [
+        ("paper-cpu", "corner9", "unknown camera 'corner9'"),
+        ("paper-cpu", "corner2", r"camera other than data.camera \(corner2\)"),
+        ("smoke", "corner3", "needs pixels observations"),
+    ],
+)
+def test_bad_ood_camera_is_refused_with_the_reason(preset, camera, message):
+    with pytest.raises(ValidationError, match=message):
+        load_config(preset, [f"evaluation.ood_camera={camera}"])
