@@ -241,8 +241,10 @@ def test_import_of_a_truncated_file_exits_2_and_registers_nothing(ckpts, tmp_pat
         (("artifacts", "show", "not-an-id!"), "not-an-id!"),
         (("lineage", "abcdef012345"), "abcdef012345"),
         (("scores", "XYZ"), "XYZ"),
-        (("evaluate", "abcdef012345", "--tasks", "reach-v3", "--obs-mode", "pixels", "--camera", "cornr3"),
-         "cornr3"),
+        (
+            ("evaluate", "abcdef012345", "--tasks", "reach-v3", "--obs-mode", "pixels", "--camera", "cornr3"),
+            "cornr3",
+        ),
     ],
 )
 def test_unknown_or_malformed_artifact_id_is_a_clear_error(tmp_path, args, needle):
