@@ -140,3 +140,21 @@ def test_a_killed_flow_resumes_from_cached_steps(smoke_home, tmp_path):
         "evaluation": 3,
         "report": 1,
     }
+
+
+def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
+    overrides = [
+        "data.obs_mode=pixels", "policy.obs_mode=pixels", "data.image_size=32", "policy.image_size=32",
+        "arms=[sft]", "evaluation.ood_camera=corner3",
+    ]  # fmt: skip
+    config = load_config("smoke", overrides).model_dump(mode="json")
+    state = pipeline(config, str(tmp_path / "home"), return_state=True)
+    assert state.is_completed(), state
+    ids = state.result()
+    api = ArtifactsAPI(str(tmp_path / "home"))
+    main, ood = (api.store.open_json(ids[k]) for k in ("report", "ood_report"))
+    assert main["fingerprint"] != ood["fingerprint"]
+    main_run, ood_run = main["arms"]["sft"]["runs"][0], ood["arms"]["sft"]["runs"][0]
+    assert main_run["checkpoint_id"] == ood_run["checkpoint_id"] == ids["checkpoints"]["sft/seed0"]
+    cameras = {api.get(r["evaluation_id"]).config["protocol"]["camera"] for r in (main_run, ood_run)}
+    assert cameras == {"corner2", "corner3"}
