@@ -37,6 +37,7 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
                 "success_rates": record.config["success_rates"],
                 "mean_success": record.config["mean_success"],
                 "steps_per_s": summary.get("steps_per_s"),
+                "steps": summary.get("steps"),
                 "trainable_parameters": summary.get("trainable_parameters"),
                 "active_ranks": summary.get("active_ranks"),
             }
@@ -47,11 +48,13 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
     for arm, runs in per_arm.items():
         tasks = sorted(runs[0]["success_rates"])
         speeds = [r["steps_per_s"] for r in runs if r["steps_per_s"]]
+        walls = [r["steps"] / r["steps_per_s"] for r in runs if r["steps_per_s"] and r.get("steps")]
         arms[arm] = {
             "overall": _mean_std([r["mean_success"] for r in runs]),
             "per_task": {t: _mean_std([r["success_rates"][t] for r in runs]) for t in tasks},
             # median: a seed's run may be a cache hit trained under other load (a sweep cell)
             "ms_per_step": 1000.0 / statistics.median(speeds) if speeds else None,
+            "train_wall_s": statistics.median(walls) if walls else None,
             "trainable_parameters": runs[0]["trainable_parameters"],
             "runs": runs,
         }
@@ -63,13 +66,14 @@ def markdown_table(table: dict[str, Any]) -> str:
     if not arms:
         return "(no evaluations)\n"
     tasks = sorted(next(iter(arms.values()))["per_task"])
-    head = ["arm", "overall"] + tasks + ["ms/step (median)", "trainable params", "seeds"]
+    head = ["arm", "overall", *tasks, "ms/step (median)", "training s (median)", "trainable params", "seeds"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for arm, row in arms.items():
         cells = [arm, _pct(row["overall"])] + [_pct(row["per_task"][t]) for t in tasks]
-        ms = row["ms_per_step"]
+        ms, wall = row["ms_per_step"], row.get("train_wall_s")
         cells += [
             f"{ms:.1f}" if ms else "-",
+            f"{wall:.0f}" if wall else "-",
             f"{row['trainable_parameters'] or '-'}",
             str(row["overall"]["n"]),
         ]

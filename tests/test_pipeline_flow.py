@@ -158,3 +158,7 @@ def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
     assert main_run["checkpoint_id"] == ood_run["checkpoint_id"] == ids["checkpoints"]["sft/seed0"]
     cameras = {api.get(r["evaluation_id"]).config["protocol"]["camera"] for r in (main_run, ood_run)}
     assert cameras == {"corner2", "corner3"}
+    summary = api.get(main_run["checkpoint_id"]).config["summary"]
+    wall = summary["steps"] / summary["steps_per_s"]
+    assert main["arms"]["sft"]["train_wall_s"] == pytest.approx(wall)
+    assert f"| {wall:.0f} | {summary['trainable_parameters']} | 1 |" in main["markdown"]
