@@ -11,14 +11,14 @@ from typing import Any
 from prefect import flow
 
 from flows.config import ARMS, PipelineConfig
-from flows.pipeline import submit_arm, submit_vector_stage
+from flows.pipeline import step_runner, submit_arm, submit_vector_stage
 from flows.runs import publish_markdown, recorded_run
 from tasks.evaluation import evaluate_task
 from tasks.vectors import merge_task
 from tasks.workspace import Workspace, provenance
 
 
-@flow(name="sweep", log_prints=True)
+@flow(name="sweep", log_prints=True, task_runner=step_runner())
 def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
     cfg = PipelineConfig.model_validate(config)
     workspace = Workspace(home)

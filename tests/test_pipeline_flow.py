@@ -14,8 +14,10 @@ from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
 from artifacts.api import ArtifactsAPI
+from capvector_core.demos import VALIDATION_SEED_BASE
 from flows.config import load_config
 from flows.pipeline import pipeline
+from flows.sweep import sweep_flow
 
 UPSTREAM = ("pretrained", "standard", "auxiliary", "vector", "meta")
 
@@ -162,3 +164,20 @@ def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
     wall = summary["steps"] / summary["steps_per_s"]
     assert main["arms"]["sft"]["train_wall_s"] == pytest.approx(wall)
     assert f"| {wall:.0f} | {summary['trainable_parameters']} | 1 |" in main["markdown"]
+
+
+def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipeline_steps(smoke_home):
+    home, ids = smoke_home
+    config = load_config("smoke", ["sweep.alphas=[0.5, 1.1]", "sweep.lambdas=[1.0e-4]"])
+    result = sweep_flow(config.model_dump(mode="json"), str(home))
+    api = ArtifactsAPI(str(home))
+    assert [(row["alpha"], row["lambda"]) for row in result["grid"]] == [(0.5, 1e-4), (1.1, 1e-4)]
+    assert result["best"] == max(result["grid"], key=lambda row: row["validation_success"])
+    for row in result["grid"]:
+        evaluation = api.get(row["evaluation_id"]).config
+        assert evaluation["eval"]["seed_base"] == VALIDATION_SEED_BASE  # never the test seeds
+        assert evaluation["mean_success"] == row["validation_success"]
+    # α = 1.1, λ = 1e-4 is the preset's own CapVector arm: the sweep reuses the pipeline's checkpoint
+    assert result["grid"][1]["checkpoint_id"] == ids["checkpoints"]["capvector/seed0"]
+    assert result["grid"][0]["checkpoint_id"] not in ids["checkpoints"].values()
+    assert api.get(result["sweep"]).kind == "sweep"
