@@ -112,13 +112,18 @@ class ArtifactsAPI:
         vector_id: str,
         tensors: Iterable[TensorStat | dict[str, Any]],
         name: str | None = None,
+        parents: Iterable[ParentLike] = (),
         **meta: Any,
     ) -> ArtifactRecord:
-        """Store per-tensor statistics of a vector as a child artifact (role `stats_of`)."""
+        """Store per-tensor statistics of a vector as a child artifact (role `stats_of`).
+
+        `parents`: what else the numbers depend on (the `base` of relative norms, the `reference`
+        of cosines), so a cosine quoted in a report traces to both vectors."""
         vector = self.store.get(vector_id)
         doc = VectorStatsDoc(vector_id=vector.id, tensors=[TensorStat.model_validate(t) for t in tensors])
+        refs = [(vector.id, "stats_of"), *parents]
         return self.register_json(
-            doc, VECTOR_STATS_KIND, name or f"stats of {vector.name}", None, [(vector.id, "stats_of")], **meta
+            doc, VECTOR_STATS_KIND, name or f"stats of {vector.name}", None, refs, **meta
         )
 
     def record_run(self, run: RunRecord) -> None:

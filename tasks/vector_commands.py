@@ -116,8 +116,9 @@ def merge_cli(
 
 def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: str | None) -> list[VectorStat]:
     v_path, v_id = resolve(workspace, vector, "vector")
-    b_path = resolve(workspace, base)[0] if base else None
-    r_path = resolve(workspace, reference, "vector")[0] if reference else None
+    b_path, b_id = resolve(workspace, base) if base else (None, None)
+    r_path, r_id = resolve(workspace, reference, "vector") if reference else (None, None)
     rows = vector_ops.stats(v_path, base=b_path, reference_vector=r_path)
-    workspace.api.register_vector_stats(v_id, stat_rows(rows), **provenance())
+    parents = [(pid, role) for pid, role in [(b_id, "base"), (r_id, "reference")] if pid is not None]
+    workspace.api.register_vector_stats(v_id, stat_rows(rows), parents=parents, **provenance())
     return rows

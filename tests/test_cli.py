@@ -150,6 +150,23 @@ def test_extract_merge_stats_match_torch_and_register_lineage(ckpts, tmp_path):
     l2 = dict(stats.values.tolist())
     assert l2["blocks.1.mlp.weight"] == pytest.approx(tensors["blocks.1.mlp.weight"]["l2"])
 
+    # A cosine against a reference vector traces to that vector and to the base of the norms.
+    run_cli("vector", "stats", str(gamma), "--base", str(p["pt"]), "--reference", str(delta), home=home)
+    with_ref = api.query(
+        "SELECT a.id FROM artifacts a JOIN edges e ON e.child = a.id AND e.role = 'reference' "
+        "WHERE a.kind = 'vector_stats'"
+    )["id"]
+    assert len(with_ref) == 1
+    parents = api.query(
+        "SELECT p.name, e.role FROM edges e JOIN artifacts p ON p.id = e.parent WHERE e.child = ?",
+        [with_ref[0]],
+    )
+    assert sorted(parents.values.tolist()) == [
+        ["delta", "reference"],
+        ["gamma", "stats_of"],
+        ["pt.safetensors", "base"],
+    ]
+
     # The same operations by artifact id give the same bytes.
     again = tmp_path / "again.safetensors"
     ao_id = api.query("SELECT id FROM artifacts WHERE name = 'ao.safetensors'")["id"][0]
