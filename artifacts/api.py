@@ -112,16 +112,25 @@ class ArtifactsAPI:
         vector_id: str,
         tensors: Iterable[TensorStat | dict[str, Any]],
         name: str | None = None,
-        parents: Iterable[ParentLike] = (),
+        base_id: str | None = None,
+        reference_id: str | None = None,
         **meta: Any,
     ) -> ArtifactRecord:
-        """Store per-tensor statistics of a vector as a child artifact (role `stats_of`).
-
-        `parents`: what else the numbers depend on (the `base` of relative norms, the `reference`
-        of cosines), so a cosine quoted in a report traces to both vectors."""
+        """Store per-tensor statistics of a vector as a child artifact (role `stats_of`); a registered
+        base (role `base`) and reference vector (role `reference`) become parents too, so a cosine
+        quoted in a report traces to both vectors."""
         vector = self.store.get(vector_id)
-        doc = VectorStatsDoc(vector_id=vector.id, tensors=[TensorStat.model_validate(t) for t in tensors])
-        refs = [(vector.id, "stats_of"), *parents]
+        base = self.store.resolve(base_id) if base_id else None
+        reference = self.store.resolve(reference_id) if reference_id else None
+        doc = VectorStatsDoc(
+            vector_id=vector.id,
+            tensors=[TensorStat.model_validate(t) for t in tensors],
+            base_id=base,
+            reference_id=reference,
+        )
+        refs = [(vector.id, "stats_of")] + [
+            (i, r) for i, r in [(base, "base"), (reference, "reference")] if i
+        ]
         return self.register_json(
             doc, VECTOR_STATS_KIND, name or f"stats of {vector.name}", None, refs, **meta
         )

@@ -129,10 +129,16 @@ class TensorStat(BaseModel):
 
 
 class VectorStatsDoc(BaseModel):
-    """Content of a `kind="vector_stats"` artifact (a child of the vector with role `stats_of`)."""
+    """Content of a `kind="vector_stats"` artifact (a child of the vector with role `stats_of`).
+
+    `base_id` / `reference_id`: the registered checkpoint the relative norms divide by and the vector
+    the cosines compare with, when they are registered; part of the content, so the same vector
+    measured against two references gives two artifacts, each with its own lineage."""
 
     vector_id: str
     tensors: list[TensorStat]
+    base_id: str | None = None
+    reference_id: str | None = None
 
 
 class LineageRow(BaseModel):

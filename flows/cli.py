@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -480,18 +481,38 @@ def _descendant_pids(root: int) -> list[int]:
     return found
 
 
-def _stop_descendants_on_sigterm() -> None:
+def _stop_descendants() -> None:
+    for pid in _descendant_pids(os.getpid()):
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGTERM)
+
+
+def _stop_descendants_on_sigterm() -> Callable[[], bool]:
     """A terminated CLI takes its helpers along: Prefect's embedded API server and the step workers
     would otherwise outlive it. Every step commits atomically, so stopping mid-step loses only that
-    step's unfinished work, exactly as a SIGKILL would."""
+    step's unfinished work, exactly as a SIGKILL would.
+
+    While a flow runs Prefect swaps in its own handler, which raises inside whatever is running; a
+    DuckDB call turns that into "Query interrupted" and the signal is lost. So the signal is also
+    recorded below Python's handlers (the wakeup pipe), and the returned `terminated()` tells main()."""
 
     def stop(signum: int, _frame: Any) -> None:
-        for pid in _descendant_pids(os.getpid()):
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.kill(pid, signal.SIGTERM)
+        _stop_descendants()
         os._exit(128 + signum)
 
     signal.signal(signal.SIGTERM, stop)
+    read_end, write_end = os.pipe()
+    os.set_blocking(read_end, False)
+    os.set_blocking(write_end, False)
+    signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
+
+    def terminated() -> bool:
+        try:
+            return int(signal.SIGTERM) in os.read(read_end, 1024)
+        except OSError:  # nothing recorded (BlockingIOError)
+            return False
+
+    return terminated
 
 
 def main() -> None:
@@ -500,9 +521,15 @@ def main() -> None:
 
     from capvector_core.safetensors_io import CheckpointError
 
-    _stop_descendants_on_sigterm()
+    terminated = _stop_descendants_on_sigterm()
     try:
-        app(standalone_mode=False)
+        try:
+            app(standalone_mode=False)
+        except BaseException:
+            if terminated():
+                _stop_descendants()
+                os._exit(128 + signal.SIGTERM)
+            raise
     except (
         ValueError,
         ArtifactError,

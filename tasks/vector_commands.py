@@ -119,6 +119,7 @@ def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: st
     b_path, b_id = resolve(workspace, base) if base else (None, None)
     r_path, r_id = resolve(workspace, reference, "vector") if reference else (None, None)
     rows = vector_ops.stats(v_path, base=b_path, reference_vector=r_path)
-    parents = [(pid, role) for pid, role in [(b_id, "base"), (r_id, "reference")] if pid is not None]
-    workspace.api.register_vector_stats(v_id, stat_rows(rows), parents=parents, **provenance())
+    workspace.api.register_vector_stats(
+        v_id, stat_rows(rows), base_id=b_id, reference_id=r_id, **provenance()
+    )
     return rows

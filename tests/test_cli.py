@@ -392,3 +392,40 @@ def test_sigterm_stops_the_embedded_prefect_server_and_workers(tmp_path):
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
+
+
+# A handler that raises (as Prefect's does inside a flow run) and a library that swallows the
+# exception (as DuckDB does: "Query interrupted"): the signal must still stop the helpers, exit 143.
+SWALLOWED_SIGTERM = """
+import os, signal, subprocess, sys
+import flows.cli as cli
+
+def app(standalone_mode):
+    helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    print(helper.pid, flush=True)
+    def raising_handler(signum, frame):
+        raise InterruptedError("termination signal")
+    signal.signal(signal.SIGTERM, raising_handler)
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+    except InterruptedError:
+        raise RuntimeError("Query interrupted") from None
+
+cli.app = app
+cli.main()
+"""
+
+
+def test_sigterm_swallowed_by_a_library_still_stops_helpers_and_exits_143():
+    proc = subprocess.run(
+        [sys.executable, "-c", SWALLOWED_SIGTERM], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 128 + signal.SIGTERM, proc.stderr
+    helper = int(proc.stdout.split()[0])
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{helper}").exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    stat = Path(f"/proc/{helper}/stat")
+    assert not stat.exists() or stat.read_text().rsplit(")", 1)[1].split()[0] == "Z", (
+        "helper outlived the CLI"
+    )
