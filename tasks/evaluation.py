@@ -7,10 +7,10 @@ from typing import Any
 from prefect.artifacts import create_table_artifact
 
 from capvector_core.evaluation import EvalConfig, EvalResult, evaluate
-from capvector_core.policy import load_policy
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
 from tasks.progress import progress_printer
+from tasks.trained_policy import load_trained_policy
 from tasks.workspace import Workspace, provenance
 
 
@@ -38,7 +38,7 @@ def evaluate_checkpoint(
 ) -> str:
     """Run the rollouts now (no cache) and register the evaluation; returns its artifact id."""
     eval_config = EvalConfig.model_validate(config)
-    policy = load_policy(workspace.path(checkpoint_id), device="auto")
+    policy, form = load_trained_policy(workspace, checkpoint_id, device="auto")
     result = evaluate(policy.act, eval_config, progress=progress_printer(step, "episodes"))
     meta = provenance()
     record = workspace.api.register_evaluation(
@@ -46,6 +46,7 @@ def evaluate_checkpoint(
         name=step,
         config={
             "eval": eval_config.model_dump(mode="json"),
+            "policy_form": form.model_dump(mode="json"),
             "protocol": result.protocol,
             "mean_success": result.mean_success,
             "success_rates": result.success_rates,

@@ -1,0 +1,59 @@
+"""The policy a checkpoint stands for, as it was trained.
+
+A checkpoint holds dense weights, so vectors can be taken from any of them. For full fine-tuning and
+LoRA those weights are the trained policy exactly. A LoRA-SP adapter whose router depends on the
+input is not: its dense merge replaces each token's score vector with the mean over calibration
+batches, and on the `hard` setting that approximation lost about half the success of the adapter
+itself (docs/results_hard_adapters.md). So an evaluation of such a checkpoint runs its `init`
+weights with the adapter applied, and says so in its record.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel
+
+from capvector_core import lora_sp
+from capvector_core.lora import read_adapter
+from capvector_core.policy import VLAPolicy, load_policy
+from tasks.workspace import Workspace
+
+
+class PolicyForm(BaseModel):
+    """Which weights an evaluation ran: the checkpoint's own, or `init` + a LoRA-SP adapter."""
+
+    form: str  # "dense" | "lora_sp_adapter"
+    adapter_id: str | None = None
+    init_id: str | None = None
+
+
+def _parent(workspace: Workspace, artifact_id: str, role: str) -> str | None:
+    return next((p.id for p in workspace.api.get(artifact_id).parents if p.role == role), None)
+
+
+def policy_form(workspace: Workspace, checkpoint_id: str) -> PolicyForm:
+    """`lora_sp_adapter` when the checkpoint came from a LoRA-SP run (its dense merge is approximate)."""
+    adapter_id = _parent(workspace, checkpoint_id, "adapter")
+    if adapter_id is None:
+        return PolicyForm(form="dense")
+    doc, _ = read_adapter(workspace.path(adapter_id))
+    if doc.get("peft_type") != "LORA_SP":
+        return PolicyForm(form="dense")
+    init_id = _parent(workspace, checkpoint_id, "init")
+    if init_id is None:
+        raise ValueError(
+            f"checkpoint {checkpoint_id[:12]} has a LoRA-SP adapter {adapter_id[:12]} but no `init` parent "
+            "to apply it to"
+        )
+    return PolicyForm(form="lora_sp_adapter", adapter_id=adapter_id, init_id=init_id)
+
+
+def load_trained_policy(
+    workspace: Workspace, checkpoint_id: str, device: str = "auto"
+) -> tuple[VLAPolicy, PolicyForm]:
+    """The policy to evaluate for `checkpoint_id`, and which form it is in."""
+    form = policy_form(workspace, checkpoint_id)
+    if form.form == "dense":
+        return load_policy(workspace.path(checkpoint_id), device=device), form
+    policy = load_policy(workspace.path(form.init_id), device=device)
+    lora_sp.load_adapter(policy, workspace.path(form.adapter_id))
+    return policy, form

@@ -1,0 +1,74 @@
+"""An evaluation runs the policy as trained: a LoRA-SP checkpoint's init + adapter, not its dense merge."""
+
+import pytest
+import torch
+
+from capvector_core import lora_sp
+from capvector_core.evaluation import EvalConfig
+from capvector_core.lora import LoraConfig
+from capvector_core.lora_sp import LoraSPConfig
+from capvector_core.policy import PolicyConfig, VLAPolicy, load_policy, save_policy
+from tasks import evaluation
+from tasks.trained_policy import load_trained_policy, policy_form
+from tasks.training import run_train
+from tasks.workspace import Workspace
+from tests.test_trainer import TINY, make_dataset, quick
+
+TARGETS = ["mlp.fc*"]
+
+
+@pytest.fixture
+def trained(tmp_path):
+    """A workspace with a dataset, an init checkpoint, and one LoRA-SP and one LoRA run from it."""
+    workspace = Workspace(str(tmp_path / "home"))
+    dataset = make_dataset()
+    data_id = workspace.api.register_dir(dataset.save(tmp_path / "data"), kind="dataset", name="demos").id
+    torch.manual_seed(0)
+    init = VLAPolicy(PolicyConfig(**TINY))
+    init_id = workspace.api.register_file(
+        save_policy(init, tmp_path / "init.safetensors"), kind="checkpoint", name="init"
+    ).id
+    inputs = {"data": data_id, "init": init_id}
+    train = quick(steps=40, lr=1e-2).model_dump(mode="json")
+    sp = {"adapter": "lora_sp", "lora_sp": LoraSPConfig(target_modules=TARGETS, bank_size=8).model_dump()}
+    lo = {"adapter": "lora", "lora": LoraConfig(target_modules=TARGETS, r=4).model_dump()}
+    return workspace, dataset, {
+        "lora_sp": run_train(workspace, "sp", inputs, {"train": train, **sp}),
+        "lora": run_train(workspace, "lora", inputs, {"train": train, **lo}),
+        "init": init_id,
+    }
+
+
+def _actions(policy: VLAPolicy, dataset) -> torch.Tensor:
+    obs = {key: dataset.tensors[key][:8].numpy() for key in ("state", "proprio")}
+    return torch.as_tensor(policy.act(obs, ["reach-v3"] * 8))
+
+
+def test_lora_sp_checkpoint_is_evaluated_as_init_plus_adapter(trained):
+    workspace, dataset, ids = trained
+    policy, form = load_trained_policy(workspace, ids["lora_sp"], device="cpu")
+    assert form.form == "lora_sp_adapter" and form.init_id == ids["init"]
+    assert not all(m.input_independent for m in lora_sp.sp_modules(policy).values())
+
+    expected = load_policy(workspace.path(ids["init"]), device="cpu")
+    lora_sp.load_adapter(expected, workspace.path(form.adapter_id))
+    assert torch.equal(_actions(policy, dataset), _actions(expected, dataset))
+    merged = load_policy(workspace.path(ids["lora_sp"]), device="cpu")
+    assert not torch.allclose(_actions(policy, dataset), _actions(merged, dataset), atol=1e-6)
+
+
+def test_dense_and_lora_checkpoints_are_evaluated_as_stored(trained):
+    workspace, _, ids = trained
+    assert policy_form(workspace, ids["lora"]).form == "dense"  # a LoRA merge is exact
+    assert policy_form(workspace, ids["init"]).form == "dense"
+    policy, _ = load_trained_policy(workspace, ids["lora"], device="cpu")
+    assert not lora_sp.sp_modules(policy)
+
+
+def test_evaluation_record_names_the_form_it_ran(trained, monkeypatch):
+    workspace, _, ids = trained
+    monkeypatch.setattr(evaluation, "create_table_artifact", lambda **_: None)  # no Prefect API needed
+    config = EvalConfig(tasks=["reach-v3"], episodes_per_task=1, horizon=10, execute_steps=4).model_dump()
+    record = workspace.api.get(evaluation.evaluate_checkpoint(workspace, "eval", ids["lora_sp"], config))
+    assert record.config["policy_form"]["form"] == "lora_sp_adapter"
+    assert record.config["policy_form"]["adapter_id"] == policy_form(workspace, ids["lora_sp"]).adapter_id
