@@ -121,6 +121,9 @@ class PipelineConfig(BaseModel):
     lora_sp: LoraSPConfig = LoraSPConfig(
         target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"], bank_size=32
     )
+    # Learning rate of the LoRA / LoRA-SP arms (adapters usually want several times full fine-tuning's);
+    # None: downstream.lr. Choose it on validation goals, e.g. a one-cell `sweep` with sweep.arm=sft_lora.
+    adapter_lr: float | None = Field(None, gt=0)
     arms: list[ArmName] = Field(default_factory=lambda: ["sft", "aux", "capvector"])
     seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
     evaluation: EvalSettings = EvalSettings()
@@ -175,7 +178,10 @@ class PipelineConfig(BaseModel):
 
     def downstream_step(self, arm: str, seed: int, orthogonal_weight: float | None = None) -> TrainStepConfig:
         spec = ARMS[arm]
-        train = self.downstream.model_copy(update={"seed": seed, "aux": self.aux if spec.aux else None})
+        update = {"seed": seed, "aux": self.aux if spec.aux else None}
+        if spec.adapter != "full" and self.adapter_lr is not None:
+            update["lr"] = self.adapter_lr
+        train = self.downstream.model_copy(update=update)
         orthogonal = None
         if spec.orthogonal:
             weight = self.orthogonal.weight if orthogonal_weight is None else orthogonal_weight

@@ -39,6 +39,7 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
                 "steps_per_s": summary.get("steps_per_s"),
                 "steps": summary.get("steps"),
                 "trainable_parameters": summary.get("trainable_parameters"),
+                "lr": checkpoint.config.get("train_step", {}).get("train", {}).get("lr"),
                 "active_ranks": summary.get("active_ranks"),
             }
         )
@@ -56,6 +57,7 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
             "ms_per_step": 1000.0 / statistics.median(speeds) if speeds else None,
             "train_wall_s": statistics.median(walls) if walls else None,
             "trainable_parameters": runs[0]["trainable_parameters"],
+            "lr": runs[0]["lr"],
             "runs": runs,
         }
     return {"fingerprint": fingerprints.pop() if fingerprints else None, "arms": arms}
@@ -66,7 +68,8 @@ def markdown_table(table: dict[str, Any]) -> str:
     if not arms:
         return "(no evaluations)\n"
     tasks = sorted(next(iter(arms.values()))["per_task"])
-    head = ["arm", "overall", *tasks, "ms/step (median)", "training s (median)", "trainable params", "seeds"]
+    head = ["arm", "overall", *tasks, "ms/step (median)", "training s (median)", "trainable params", "lr"]
+    head.append("seeds")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for arm, row in arms.items():
         cells = [arm, _pct(row["overall"])] + [_pct(row["per_task"][t]) for t in tasks]
@@ -75,6 +78,7 @@ def markdown_table(table: dict[str, Any]) -> str:
             f"{ms:.1f}" if ms else "-",
             f"{wall:.0f}" if wall else "-",
             f"{row['trainable_parameters'] or '-'}",
+            f"{row['lr']:g}" if row.get("lr") else "-",
             str(row["overall"]["n"]),
         ]
         lines.append("| " + " | ".join(cells) + " |")

@@ -60,6 +60,17 @@ def test_override_below_a_defaulted_section_keeps_its_other_defaults():
     assert config.lora_sp.target_modules == PipelineConfig.model_fields["lora_sp"].default.target_modules
 
 
+def test_adapter_lr_applies_to_adapter_arms_only():
+    config = load_config("smoke", ["adapter_lr=3e-3", "arms=[sft, sft_lora, capvector_lora_sp]"])
+    assert config.downstream_step("sft", 0).train.lr == config.downstream.lr != 3e-3
+    assert config.downstream_step("sft_lora", 0).train.lr == 3e-3
+    assert config.downstream_step("capvector_lora_sp", 0).train.lr == 3e-3
+    default = load_config("smoke")
+    assert default.downstream_step("sft_lora", 0).train.lr == default.downstream.lr
+    with pytest.raises(ValidationError, match="adapter_lr"):
+        load_config("smoke", ["adapter_lr=0"])
+
+
 def test_ood_camera_changes_only_the_camera_of_the_test_protocol():
     config = load_config("paper-cpu", ["evaluation.ood_camera=corner3"])
     test, ood = config.eval_config(), config.eval_config(camera="corner3")

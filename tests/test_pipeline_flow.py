@@ -163,7 +163,8 @@ def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
     summary = api.get(main_run["checkpoint_id"]).config["summary"]
     wall = summary["steps"] / summary["steps_per_s"]
     assert main["arms"]["sft"]["train_wall_s"] == pytest.approx(wall)
-    assert f"| {wall:.0f} | {summary['trainable_parameters']} | 1 |" in main["markdown"]
+    lr = config["downstream"]["lr"]
+    assert f"| {wall:.0f} | {summary['trainable_parameters']} | {lr:g} | 1 |" in main["markdown"]
 
 
 def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipeline_steps(smoke_home):
