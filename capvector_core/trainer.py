@@ -22,9 +22,10 @@ import math
 import os
 import re
 import shutil
+import sys
 import time
-from collections.abc import Callable, Mapping
-from contextlib import nullcontext
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -275,22 +276,43 @@ def _param_groups(params: list[nn.Parameter], weight_decay: float) -> list[dict]
     return [{"params": decay, "weight_decay": weight_decay}, {"params": rest, "weight_decay": 0.0}]
 
 
-def _progress(enabled: bool, total: int, start: int):
+ProgressReport = Callable[[int, str], None]
+
+
+@contextmanager
+def _progress(enabled: bool, label: str, total: int, start: int) -> Iterator[ProgressReport | None]:
+    """Yields report(step, loss_text), on stderr (stdout may carry data, e.g. `capvector run --json`).
+
+    A rich bar on a terminal. Written to a log file, CI or a pipe, rich draws the bar only once
+    it is finished, so a long run would look stuck: there, a plain line every tenth of the run.
+    """
     if not enabled:
-        return nullcontext(None)
+        yield None
+        return
     from rich.console import Console
+
+    console = Console(stderr=True)
+    if not console.is_terminal:
+        yield _line_reporter(label, total)
+        return
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    bar = Progress(  # on stderr: stdout may carry data (e.g. `capvector run --json`)
-        TextColumn("train"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[loss]}"),
-        TimeRemainingColumn(),
-        console=Console(stderr=True),
-    )
-    bar.add_task("train", total=total, completed=start, loss="")
-    return bar
+    columns = (TextColumn(label), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[loss]}"))
+    with Progress(*columns, TimeRemainingColumn(), console=console) as bar:
+        task = bar.add_task(label, total=total, completed=start, loss="")
+        yield lambda step, loss: bar.update(task, completed=step, loss=loss)
+
+
+def _line_reporter(label: str, total: int) -> ProgressReport:
+    last_tenth = [-1]
+
+    def report(step: int, loss: str) -> None:
+        tenth = (10 * step) // max(total, 1)
+        if tenth != last_tenth[0]:
+            last_tenth[0] = tenth
+            print(f"[{label}] {step}/{total} steps, {loss}", file=sys.stderr, flush=True)
+
+    return report
 
 
 def train(
@@ -300,6 +322,7 @@ def train(
     run_dir: str | Path,
     extra_losses: Mapping[str, ExtraLoss] | None = None,
     progress: bool = True,
+    progress_label: str = "train",
 ) -> TrainResult:
     """Train ``policy`` in place on ``dataset`` (a DemoDataset: ``.tensors``, ``.meta.tasks/.instructions``).
 
@@ -380,7 +403,7 @@ def train(
     last_loss = float("nan")
     t_start = time.perf_counter()
     t_segment = t_start
-    with _progress(progress, config.steps, start) as bar, open(curve_path, "a") as curve:
+    with _progress(progress, progress_label, config.steps, start) as report, open(curve_path, "a") as curve:
         while run.step < config.steps:
             step = run.step
             lr = lr_at(step, config)
@@ -427,8 +450,8 @@ def train(
                 last_loss = means[0]
                 window.zero_()
                 window_count = 0
-                if bar is not None:
-                    bar.update(bar.task_ids[0], completed=run.step, loss=f"loss {last_loss:.4f}")
+                if report is not None:
+                    report(run.step, f"loss {last_loss:.4f}")
             if run.step % config.checkpoint_every == 0 or done:
                 run.train_seconds += time.perf_counter() - t_segment
                 curve.flush()

@@ -130,7 +130,9 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             extra["lora_sp"] = lora_sp.lora_sp_loss
         trainable = lora.trainable_parameter_count(model)
         run_dir = workspace.run_dir(key)
-        result = train(model, dataset, cfg.train, run_dir, extra_losses=extra, progress=not quiet())
+        result = train(
+            model, dataset, cfg.train, run_dir, extra_losses=extra, progress=not quiet(), progress_label=step
+        )
 
         summary = {
             "step": step,

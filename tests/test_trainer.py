@@ -68,6 +68,16 @@ def curve(path) -> list[dict]:
     return [json.loads(line) for line in Path(path).read_text().splitlines()]
 
 
+def test_progress_on_a_log_file_is_a_line_per_tenth_of_the_run(tmp_path, capfd):
+    """Off a terminal rich draws its bar only when done; a long run must still show it is moving."""
+    policy = VLAPolicy(PolicyConfig(**TINY))
+    train(policy, make_dataset(), quick(steps=20, log_every=1), tmp_path, progress_label="downstream/sft")
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("[downstream/sft]")]
+    steps = [int(line.split()[1].split("/")[0]) for line in lines]
+    assert steps == [1, *range(2, 21, 2)], lines  # the first step says it started
+    assert all(line.endswith(tuple("0123456789")) and "loss " in line for line in lines)
+
+
 def test_loss_decreases_and_outputs_written(tmp_path):
     torch.manual_seed(0)
     policy = VLAPolicy(PolicyConfig(**TINY))
