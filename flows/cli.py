@@ -348,7 +348,9 @@ def report(
         list[str] | None,
         typer.Option(help="'TITLE=REPORT_ID': another report as an extra table (repeatable)"),
     ] = None,
-    sweep_id: Annotated[str | None, typer.Option("--sweep", help="a sweep artifact to include")] = None,
+    sweep_id: Annotated[
+        list[str] | None, typer.Option("--sweep", help="a sweep artifact to include (repeatable)")
+    ] = None,
     notes: Annotated[Path | None, typer.Option(help="a Markdown file of analysis to include")] = None,
     home: HomeOption = None,
 ) -> None:

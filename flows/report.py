@@ -113,9 +113,11 @@ def _sweep_section(workspace: Workspace, sweep_id: str) -> str:
 
     doc = workspace.api.store.open_json(workspace.api.get(sweep_id).id)
     best = doc["best"]
+    train = workspace.api.get(best["checkpoint_id"]).config.get("train_step", {}).get("train", {})
+    lr = f", lr {train['lr']:g}" if "lr" in train else ""
     return (
         f"\n## α × λ sweep `{sweep_id[:12]}` "
-        f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']})\n\n"
+        f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']}{lr})\n\n"
         + sweep_markdown(doc)
         + f"\nChosen: α = {best['alpha']}, λ = {best['lambda']} (validation success "
         f"{100 * best['validation_success']:.1f}%). Test seeds were not used for the choice.\n"
@@ -127,13 +129,14 @@ def write_report(
     report_id: str,
     out: Path,
     sections: dict[str, str] | None = None,
-    sweep_id: str | None = None,
+    sweep_ids: list[str] | None = None,
     notes: str | None = None,
 ) -> Path:
     """Write `out` (Markdown) and its figures beside it; returns the Markdown path.
 
     `sections`: title -> another report id (ablations, other budgets), shown as extra tables; when
     the reports differ in downstream budget, a success-vs-steps figure is drawn from all of them.
+    `sweep_ids`: sweeps shown after the tables (the α × λ grid; one-cell sweeps that chose an lr).
     """
     record = workspace.api.get(report_id)
     table = workspace.api.store.open_json(record.id)
@@ -205,8 +208,7 @@ def write_report(
         parts.append(
             f"\n## Success against training steps\n\n![convergence]({figures['convergence'].name})\n"
         )
-    if sweep_id:
-        parts.append(_sweep_section(workspace, sweep_id))
+    parts.extend(_sweep_section(workspace, sweep_id) for sweep_id in sweep_ids or [])
     parts.append(vector_section)
     if "curves" in figures:
         parts.append(f"\n## Training curves\n\n![curves]({figures['curves'].name})\n")

@@ -17,7 +17,9 @@ from artifacts.api import ArtifactsAPI
 from capvector_core.demos import VALIDATION_SEED_BASE
 from flows.config import load_config
 from flows.pipeline import pipeline
+from flows.report import write_report
 from flows.sweep import sweep_flow
+from tasks.workspace import Workspace
 
 UPSTREAM = ("pretrained", "standard", "auxiliary", "vector", "meta")
 
@@ -167,7 +169,7 @@ def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
     assert f"| {wall:.0f} | {summary['trainable_parameters']} | {lr:g} | 1 |" in main["markdown"]
 
 
-def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipeline_steps(smoke_home):
+def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipeline_steps(smoke_home, tmp_path):
     home, ids = smoke_home
     config = load_config("smoke", ["sweep.alphas=[0.5, 1.1]", "sweep.lambdas=[1.0e-4]"])
     result = sweep_flow(config.model_dump(mode="json"), str(home))
@@ -182,3 +184,12 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
     assert result["grid"][1]["checkpoint_id"] == ids["checkpoints"]["capvector/seed0"]
     assert result["grid"][0]["checkpoint_id"] not in ids["checkpoints"].values()
     assert api.get(result["sweep"]).kind == "sweep"
+
+    one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas=[1.0e-4]"]).model_dump(mode="json")
+    one_cell = sweep_flow(one_cell, str(home))
+    assert one_cell["grid"] == result["grid"][1:]  # every step cached
+    sweeps = [result["sweep"], one_cell["sweep"]]
+    text = write_report(Workspace(str(home)), ids["report"], tmp_path / "r.md", sweep_ids=sweeps).read_text()
+    for sweep_id in sweeps:
+        heading = f"## α × λ sweep `{sweep_id[:12]}` (validation goal variations, arm `capvector`, seed 0"
+        assert f"{heading}, lr {config.downstream.lr:g})" in text
