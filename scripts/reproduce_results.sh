@@ -4,6 +4,7 @@
 # machine (see the comments).
 #   quick  -> docs/results.md         state + `dynamics`, easy downstream tasks (about an hour)
 #   hard   -> docs/results_hard.md    state + `dynamics`, grasp/insertion downstream tasks (~40 min)
+#             docs/results_hard_adapters.md  the same with LoRA and LoRA-SP arms (~40 min more)
 #   pixels -> docs/results_pixels.md  camera + `spatial`, the `paper` setting cut to CPU (~1 hour)
 # Usage: scripts/reproduce_results.sh [quick|hard|pixels|all]   (CAPVECTOR_HOME defaults to ./capvector_home)
 set -euo pipefail
@@ -11,9 +12,8 @@ cd "$(dirname "$0")/.."
 cv=".venv/bin/capvector"
 ids() { .venv/bin/python -c 'import json,sys; print(json.load(sys.stdin)[sys.argv[1]])' "$1"; }
 
-# α and λ on validation goal variations (never the test seeds); sets $sweep and $chosen.
+# α and λ on validation goal variations (never the test seeds); sets $sweep, $alpha, $lambda, $chosen.
 sweep_for() {
-  local alpha lambda
   read -r sweep alpha lambda < <($cv sweep --preset "$1" --json | .venv/bin/python -c \
     'import json,sys; d=json.load(sys.stdin); print(d["sweep"], d["best"]["alpha"], d["best"]["lambda"])')
   echo "sweep $sweep ($1) chose alpha=$alpha lambda=$lambda"
@@ -69,6 +69,22 @@ hard() {
     --section "Half the downstream budget (400 steps)=$half" \
     --section "γ masked to attention projections, seed 0=$attn" \
     --section "γ masked to MLPs, seed 0=$mlp"
+  # LoRA (r=8) and LoRA-SP (bank 16) versions of (i) and (iii), 3 seeds, beside the full fine-tuning
+  # arms of the same θ_pt (cache hits when the comparison above ran on this machine). Their learning
+  # rate is chosen first, on validation goals: one-cell sweeps of the SFT-LoRA arm, seed 0.
+  local lr best=0 adapter_lr cells=()
+  for lr in 1e-4 1e-3 3e-3 1e-2; do
+    read -r cell score < <($cv sweep --preset hard "${chosen[@]}" --set lora_sp.bank_size=16 --set sweep.arm=sft_lora \
+      --set "sweep.alphas=[$alpha]" --set "sweep.lambdas=[$lambda]" --set adapter_lr=$lr --json | .venv/bin/python -c \
+      'import json,sys; d=json.load(sys.stdin); print(d["sweep"], d["best"]["validation_success"])')
+    cells+=(--sweep "$cell")
+    if .venv/bin/python -c "import sys; sys.exit(not $score > $best)"; then best=$score adapter_lr=$lr; fi
+  done
+  echo "adapter lr $adapter_lr (validation success $best)"
+  adapters=$($cv run --preset hard "${chosen[@]}" --set lora_sp.bank_size=16 --set adapter_lr=$adapter_lr \
+    --set 'arms=[sft, aux, capvector, meta_sft, sft_lora, capvector_lora, sft_lora_sp, capvector_lora_sp]' \
+    --json | ids report)
+  $cv report "$adapters" -o docs/results_hard_adapters.md --notes docs/results_hard_adapters_notes.md "${cells[@]}"
 }
 
 pixels() {
