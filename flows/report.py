@@ -14,6 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from flows.config import ARMS  # noqa: E402
 from tasks.workspace import Workspace  # noqa: E402
 
 
@@ -108,20 +109,47 @@ def plot_convergence(points: dict[str, list[tuple[int, float, float]]], path: Pa
     return path
 
 
-def _sweep_section(workspace: Workspace, sweep_id: str) -> str:
+def _train_lr(workspace: Workspace, checkpoint_id: str) -> float | None:
+    return workspace.api.get(checkpoint_id).config.get("train_step", {}).get("train", {}).get("lr")
+
+
+def _sweep_section(workspace: Workspace, sweep_id: str, doc: dict[str, Any]) -> str:
     from flows.sweep import sweep_markdown
 
-    doc = workspace.api.store.open_json(workspace.api.get(sweep_id).id)
     best = doc["best"]
-    train = workspace.api.get(best["checkpoint_id"]).config.get("train_step", {}).get("train", {})
-    lr = f", lr {train['lr']:g}" if "lr" in train else ""
+    lr = _train_lr(workspace, best["checkpoint_id"])
     return (
         f"\n## α × λ sweep `{sweep_id[:12]}` "
-        f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']}{lr})\n\n"
+        f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']}"
+        f"{f', lr {lr:g}' if lr is not None else ''})\n\n"
         + sweep_markdown(doc)
         + f"\nChosen: α = {best['alpha']}, λ = {best['lambda']} (validation success "
         f"{100 * best['validation_success']:.1f}%). Test seeds were not used for the choice.\n"
     )
+
+
+def _learning_rate_section(workspace: Workspace, cells: list[tuple[str, dict[str, Any]]]) -> str:
+    """One-cell sweeps are how a learning rate is chosen: one table, the best lr of each arm marked."""
+    rows = sorted(
+        (doc["arm"], _train_lr(workspace, doc["best"]["checkpoint_id"]) or 0.0, sid, doc["best"], doc["seed"])
+        for sid, doc in cells
+    )
+    best = {arm: max(r[3]["validation_success"] for r in rows if r[0] == arm) for arm, *_ in rows}
+    lines = [
+        "\n## Learning rate, chosen on validation goal variations\n",
+        "| arm | lr | α | λ | validation success | seed | sweep |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for arm, lr, sid, cell, seed in rows:
+        mark = " **(best)**" if cell["validation_success"] == best[arm] else ""
+        merged = ARMS[arm].init == "meta"  # α and λ mean nothing to an arm that starts from θ_pt
+        alpha, lam = (cell["alpha"], cell["lambda"]) if merged else ("–", "–")
+        lines.append(
+            f"| {arm} | {lr:g} | {alpha} | {lam} | "
+            f"{100 * cell['validation_success']:.1f}%{mark} | {seed} | `{sid[:12]}` |"
+        )
+    lines.append("\nTest seeds were not used for the choice.\n")
+    return "\n".join(lines)
 
 
 def write_report(
@@ -136,7 +164,8 @@ def write_report(
 
     `sections`: title -> another report id (ablations, other budgets), shown as extra tables; when
     the reports differ in downstream budget, a success-vs-steps figure is drawn from all of them.
-    `sweep_ids`: sweeps shown after the tables (the α × λ grid; one-cell sweeps that chose an lr).
+    `sweep_ids`: sweeps shown after the tables: each α × λ grid in full, and the one-cell sweeps (how a
+    learning rate is chosen) gathered into one table.
     """
     record = workspace.api.get(report_id)
     table = workspace.api.store.open_json(record.id)
@@ -208,7 +237,12 @@ def write_report(
         parts.append(
             f"\n## Success against training steps\n\n![convergence]({figures['convergence'].name})\n"
         )
-    parts.extend(_sweep_section(workspace, sweep_id) for sweep_id in sweep_ids or [])
+    unique_ids = dict.fromkeys(sweep_ids or [])  # a repeated id is shown once
+    sweeps = [(sid, workspace.api.store.open_json(workspace.api.get(sid).id)) for sid in unique_ids]
+    parts.extend(_sweep_section(workspace, sid, doc) for sid, doc in sweeps if len(doc["grid"]) > 1)
+    cells = [(sid, doc) for sid, doc in sweeps if len(doc["grid"]) == 1]
+    if cells:
+        parts.append(_learning_rate_section(workspace, cells))
     parts.append(vector_section)
     if "curves" in figures:
         parts.append(f"\n## Training curves\n\n![curves]({figures['curves'].name})\n")

@@ -4,7 +4,8 @@
 # machine (see the comments).
 #   quick  -> docs/results.md         state + `dynamics`, easy downstream tasks (about an hour)
 #   hard   -> docs/results_hard.md    state + `dynamics`, grasp/insertion downstream tasks (~40 min)
-#             docs/results_hard_adapters.md  the same with LoRA and LoRA-SP arms (~40 min more)
+#             docs/results_hard_adapters.md  every arm at a validation-chosen lr, with LoRA and LoRA-SP
+#             arms (~2 hours more)
 #   pixels -> docs/results_pixels.md  camera + `spatial`, the `paper` setting cut to CPU (~1 hour)
 # Usage: scripts/reproduce_results.sh [quick|hard|pixels|all]   (CAPVECTOR_HOME defaults to ./capvector_home)
 set -euo pipefail
@@ -69,22 +70,46 @@ hard() {
     --section "Half the downstream budget (400 steps)=$half" \
     --section "γ masked to attention projections, seed 0=$attn" \
     --section "γ masked to MLPs, seed 0=$mlp"
-  # LoRA (r=8) and LoRA-SP (bank 16) versions of (i) and (iii), 3 seeds, beside the full fine-tuning
-  # arms of the same θ_pt (cache hits when the comparison above ran on this machine). Their learning
-  # rate is chosen first, on validation goals: one-cell sweeps of the SFT-LoRA arm, seed 0.
-  local lr best=0 adapter_lr cells=()
-  for lr in 1e-4 1e-3 3e-3 1e-2; do
-    read -r cell score < <($cv sweep --preset hard "${chosen[@]}" --set lora_sp.bank_size=16 --set sweep.arm=sft_lora \
-      --set "sweep.alphas=[$alpha]" --set "sweep.lambdas=[$lambda]" --set adapter_lr=$lr --json | .venv/bin/python -c \
+}
+
+# The best learning rate of one arm on validation goals (one-cell sweeps, seed 0): sets $best_lr and
+# appends each cell's sweep id to $cells. Usage: best_lr ARM LR_KEY LR... (extra --set from $chosen).
+best_lr() {
+  local arm=$1 key=$2 lr cell score best=-1
+  shift 2
+  for lr in "$@"; do
+    read -r cell score < <($cv sweep --preset hard "${chosen[@]}" --set lora_sp.bank_size=16 --set sweep.arm="$arm" \
+      --set "sweep.alphas=[$alpha]" --set "sweep.lambdas=[$lambda]" --set "$key=$lr" --json | .venv/bin/python -c \
       'import json,sys; d=json.load(sys.stdin); print(d["sweep"], d["best"]["validation_success"])')
     cells+=(--sweep "$cell")
-    if .venv/bin/python -c "import sys; sys.exit(not $score > $best)"; then best=$score adapter_lr=$lr; fi
+    if .venv/bin/python -c "import sys; sys.exit(not $score > $best)"; then best=$score best_lr=$lr; fi
   done
-  echo "adapter lr $adapter_lr (validation success $best)"
-  adapters=$($cv run --preset hard "${chosen[@]}" --set lora_sp.bank_size=16 --set adapter_lr=$adapter_lr \
-    --set 'arms=[sft, aux, capvector, meta_sft, sft_lora, capvector_lora, sft_lora_sp, capvector_lora_sp]' \
-    --json | ids report)
-  $cv report "$adapters" -o docs/results_hard_adapters.md --notes docs/results_hard_adapters_notes.md "${cells[@]}"
+  echo "$arm: $key=$best_lr (validation success $best)"
+}
+
+# LoRA (r=8) and LoRA-SP (bank 16) versions of (i) and (iii) beside the full fine-tuning arms, 3 seeds,
+# in two passes. First the adapter lr is chosen on the SFT-LoRA arm and every arm runs with the
+# preset's full fine-tuning lr and the first sweep's α, λ ("untuned"). Then the full fine-tuning lr is
+# chosen on the SFT arm, α and λ are re-swept at that lr, and every arm runs again ("tuned").
+hard_tuned() {
+  local cells=() arms full_lr adapter_lr untuned tuned
+  arms='arms=[sft, aux, capvector, meta_sft, sft_lora, capvector_lora, sft_lora_sp, capvector_lora_sp]'
+  sweep_for hard
+  best_lr sft_lora adapter_lr 1e-4 1e-3 3e-3 1e-2
+  adapter_lr=$best_lr
+  untuned=$($cv run --preset hard "${chosen[@]}" --set lora_sp.bank_size=16 --set adapter_lr="$adapter_lr" \
+    --set "$arms" --json | ids report)
+  best_lr sft downstream.lr 1e-4 3e-4 1e-3 3e-3
+  full_lr=$best_lr
+  read -r sweep alpha lambda < <($cv sweep --preset hard --set downstream.lr="$full_lr" --json | .venv/bin/python -c \
+    'import json,sys; d=json.load(sys.stdin); print(d["sweep"], d["best"]["alpha"], d["best"]["lambda"])')
+  echo "sweep $sweep (lr $full_lr) chose alpha=$alpha lambda=$lambda"
+  chosen=(--set "alpha=$alpha" --set "orthogonal.weight=$lambda")
+  tuned=$($cv run --preset hard "${chosen[@]}" --set lora_sp.bank_size=16 --set downstream.lr="$full_lr" \
+    --set adapter_lr="$adapter_lr" --set "$arms" --json | ids report)
+  $cv report "$tuned" -o docs/results_hard_adapters.md --notes docs/results_hard_adapters_notes.md \
+    --section "Untuned: full fine-tuning at the preset lr, α and λ of the first sweep=$untuned" \
+    --sweep "$sweep" "${cells[@]}"
 }
 
 pixels() {
@@ -99,8 +124,8 @@ pixels() {
 
 case "${1:-all}" in
   quick) quick ;;
-  hard) hard ;;
+  hard) hard; hard_tuned ;;
   pixels) pixels ;;
-  all) quick; hard; pixels ;;
+  all) quick; hard; hard_tuned; pixels ;;
   *) echo "usage: $0 [quick|hard|pixels|all]" >&2; exit 2 ;;
 esac

@@ -188,8 +188,13 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
     one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas=[1.0e-4]"]).model_dump(mode="json")
     one_cell = sweep_flow(one_cell, str(home))
     assert one_cell["grid"] == result["grid"][1:]  # every step cached
-    sweeps = [result["sweep"], one_cell["sweep"]]
+    sweeps = [result["sweep"], one_cell["sweep"], result["sweep"]]
     text = write_report(Workspace(str(home)), ids["report"], tmp_path / "r.md", sweep_ids=sweeps).read_text()
-    for sweep_id in sweeps:
-        heading = f"## α × λ sweep `{sweep_id[:12]}` (validation goal variations, arm `capvector`, seed 0"
-        assert f"{heading}, lr {config.downstream.lr:g})" in text
+    grid = f"## α × λ sweep `{result['sweep'][:12]}` (validation goal variations, arm `capvector`, seed 0"
+    assert text.count(f"{grid}, lr {config.downstream.lr:g})") == 1  # a repeated id is shown once
+    # the one-cell sweep (how an lr is chosen) is a row of the learning-rate table, not a grid of its own
+    assert f"## α × λ sweep `{one_cell['sweep'][:12]}`" not in text
+    cell = one_cell["grid"][0]
+    success = f"{100 * cell['validation_success']:.1f}% **(best)**"
+    lr = f"{config.downstream.lr:g}"
+    assert f"| capvector | {lr} | 1.1 | 0.0001 | {success} | 0 | `{one_cell['sweep'][:12]}` |" in text
