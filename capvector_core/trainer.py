@@ -304,12 +304,13 @@ def _progress(enabled: bool, label: str, total: int, start: int) -> Iterator[Pro
 
 
 def _line_reporter(label: str, total: int) -> ProgressReport:
-    last_tenth = [-1]
+    last_tenth = -1
 
     def report(step: int, loss: str) -> None:
+        nonlocal last_tenth
         tenth = (10 * step) // max(total, 1)
-        if tenth != last_tenth[0]:
-            last_tenth[0] = tenth
+        if tenth != last_tenth:
+            last_tenth = tenth
             print(f"[{label}] {step}/{total} steps, {loss}", file=sys.stderr, flush=True)
 
     return report

@@ -15,6 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from flows.config import ARMS  # noqa: E402
+from tasks.reporting import trained_with  # noqa: E402
 from tasks.workspace import Workspace  # noqa: E402
 
 
@@ -81,11 +82,6 @@ def _vector_of(workspace: Workspace, table: dict[str, Any]) -> str | None:
     return None
 
 
-def _steps_of(workspace: Workspace, checkpoint_id: str) -> int | None:
-    step = workspace.api.get(checkpoint_id).config.get("train_step", {})
-    return step.get("train", {}).get("steps")
-
-
 def plot_convergence(points: dict[str, list[tuple[int, float, float]]], path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(6, 3.2))
     for arm, rows in sorted(points.items()):
@@ -109,15 +105,15 @@ def plot_convergence(points: dict[str, list[tuple[int, float, float]]], path: Pa
     return path
 
 
-def _train_lr(workspace: Workspace, checkpoint_id: str) -> float | None:
-    return workspace.api.get(checkpoint_id).config.get("train_step", {}).get("train", {}).get("lr")
+def _trained_with(workspace: Workspace, checkpoint_id: str, key: str) -> Any:
+    return trained_with(workspace.api.get(checkpoint_id).config, key)
 
 
 def _sweep_section(workspace: Workspace, sweep_id: str, doc: dict[str, Any]) -> str:
     from flows.sweep import sweep_markdown
 
     best = doc["best"]
-    lr = _train_lr(workspace, best["checkpoint_id"])
+    lr = _trained_with(workspace, best["checkpoint_id"], "lr")
     return (
         f"\n## α × λ sweep `{sweep_id[:12]}` "
         f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']}"
@@ -130,10 +126,11 @@ def _sweep_section(workspace: Workspace, sweep_id: str, doc: dict[str, Any]) -> 
 
 def _learning_rate_section(workspace: Workspace, cells: list[tuple[str, dict[str, Any]]]) -> str:
     """One-cell sweeps are how a learning rate is chosen: one table, the best lr of each arm marked."""
-    rows = sorted(
-        (doc["arm"], _train_lr(workspace, doc["best"]["checkpoint_id"]) or 0.0, sid, doc["best"], doc["seed"])
-        for sid, doc in cells
-    )
+    rows = []
+    for sid, doc in cells:
+        lr = _trained_with(workspace, doc["best"]["checkpoint_id"], "lr") or 0.0
+        rows.append((doc["arm"], lr, sid, doc["best"], doc["seed"]))
+    rows.sort()
     best = {arm: max(r[3]["validation_success"] for r in rows if r[0] == arm) for arm, *_ in rows}
     lines = [
         "\n## Learning rate, chosen on validation goal variations\n",
@@ -192,7 +189,7 @@ def write_report(
             main_row = table["arms"].get(arm)
             if main_row is None or row["overall"]["n"] != main_row["overall"]["n"]:
                 continue  # only budget variants of the comparison's own arms and seeds
-            steps = _steps_of(workspace, row["runs"][0]["checkpoint_id"])
+            steps = _trained_with(workspace, row["runs"][0]["checkpoint_id"], "steps")
             if steps:
                 points.setdefault(arm, []).append((steps, row["overall"]["mean"], row["overall"]["std"]))
     if len({p[0] for rows in points.values() for p in rows}) > 1:

@@ -18,6 +18,11 @@ def _mean_std(values: list[float]) -> dict[str, float]:
     }
 
 
+def trained_with(checkpoint_config: dict[str, Any], key: str) -> Any:
+    """A setting of the training run that made a checkpoint (`lr`, `steps`, ...); None if unrecorded."""
+    return checkpoint_config.get("train_step", {}).get("train", {}).get(key)
+
+
 def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, Any]:
     """`evaluations`: label "<arm>/seed<k>" -> evaluation id. Refuses mixed protocols."""
     per_arm: dict[str, list[dict[str, Any]]] = {}
@@ -39,7 +44,7 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
                 "steps_per_s": summary.get("steps_per_s"),
                 "steps": summary.get("steps"),
                 "trainable_parameters": summary.get("trainable_parameters"),
-                "lr": checkpoint.config.get("train_step", {}).get("train", {}).get("lr"),
+                "lr": trained_with(checkpoint.config, "lr"),
                 "active_ranks": summary.get("active_ranks"),
             }
         )
@@ -68,8 +73,8 @@ def markdown_table(table: dict[str, Any]) -> str:
     if not arms:
         return "(no evaluations)\n"
     tasks = sorted(next(iter(arms.values()))["per_task"])
-    head = ["arm", "overall", *tasks, "ms/step (median)", "training s (median)", "trainable params", "lr"]
-    head.append("seeds")
+    columns = ["ms/step (median)", "training s (median)", "trainable params", "lr", "seeds"]
+    head = ["arm", "overall", *tasks, *columns]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for arm, row in arms.items():
         cells = [arm, _pct(row["overall"])] + [_pct(row["per_task"][t]) for t in tasks]

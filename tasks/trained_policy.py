@@ -26,19 +26,16 @@ class PolicyForm(BaseModel):
     init_id: str | None = None
 
 
-def _parent(workspace: Workspace, artifact_id: str, role: str) -> str | None:
-    return next((p.id for p in workspace.api.get(artifact_id).parents if p.role == role), None)
-
-
 def policy_form(workspace: Workspace, checkpoint_id: str) -> PolicyForm:
     """`lora_sp_adapter` when the checkpoint came from a LoRA-SP run (its dense merge is approximate)."""
-    adapter_id = _parent(workspace, checkpoint_id, "adapter")
+    parents = {p.role: p.id for p in workspace.api.get(checkpoint_id).parents}
+    adapter_id = parents.get("adapter")
     if adapter_id is None:
         return PolicyForm(form="dense")
     doc, _ = read_adapter(workspace.path(adapter_id))
     if doc.get("peft_type") != "LORA_SP":
         return PolicyForm(form="dense")
-    init_id = _parent(workspace, checkpoint_id, "init")
+    init_id = parents.get("init")
     if init_id is None:
         raise ValueError(
             f"checkpoint {checkpoint_id[:12]} has a LoRA-SP adapter {adapter_id[:12]} but no `init` parent "
