@@ -2,19 +2,22 @@
 
 Each objective is an ``nn.Module`` holding its own head parameters, separate from the policy, so
 θ_ao (SFT + aux) and θ_ft (plain SFT) have identical keys and a capability vector is well defined.
-An objective declares the dataset fields it needs (``required_fields``) and, if it looks ahead in
-time, its ``horizon``; the trainer supplies ``batch["privileged_future"]`` for that horizon.
+An objective declares the policy features it reads (``required_features``: names from the policy's
+``feature_specs()``, so any policy that exposes them works), the dataset fields it needs
+(``required_fields``) and, if it looks ahead in time, its ``horizon``; the policy's batcher then
+supplies ``batch["privileged_future"]`` for that horizon.
 
 - ``spatial`` — the Spatial Forcing analogue. Hidden states of an intermediate layer at the vision
-  tokens (state tokens in ``state`` mode) go through LayerNorm -> Linear -> GELU -> Linear and are
-  aligned by cosine similarity with fixed 3D scene features: the privileged object/goal/hand xyz,
-  standardized with dataset statistics and embedded by a fixed random Fourier feature map
+  tokens (state tokens in ``state`` mode; feature ``obs_tokens``) go through LayerNorm -> Linear ->
+  GELU -> Linear and are aligned by cosine similarity with fixed 3D scene features: the privileged
+  object/goal/hand xyz, standardized with dataset statistics and embedded by a fixed random Fourier map
   ``[sin(Wx), cos(Wx)]`` (W ~ N(0, scale²), seeded, never trained — a frozen "3D encoder" in the role
   VGGT plays in the paper, so the target cannot collapse). ``pooling="mean"`` aligns the mean token;
   ``pooling="token"`` aligns every token with the scene feature plus a fixed sinusoidal embedding of
   its position (the paper's f + E). Loss = 1 − mean cosine.
-- ``dynamics`` — an MLP on the mean-pooled final backbone state predicts the standardized privileged
-  state ``horizon`` steps ahead in the same episode (clamped at the episode's end); loss = MSE.
+- ``dynamics`` — an MLP on the mean-pooled final backbone state (feature ``tokens``) predicts the
+  standardized privileged state ``horizon`` steps ahead in the same episode (clamped at the episode's
+  end); loss = MSE.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
-from capvector_core.policy import PolicyConfig
+from capvector_core.policy import FeatureSpec
 
 _REGISTRY: dict[str, type[AuxObjective]] = {}
 
@@ -55,21 +58,29 @@ def known_objectives() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def build_objective(name: str, policy_config: PolicyConfig, params: Mapping | None = None) -> AuxObjective:
-    """Instantiate a registered objective; params are validated by its own pydantic Params model."""
+def build_objective(
+    name: str, features: Mapping[str, FeatureSpec], params: Mapping | None = None
+) -> AuxObjective:
+    """Instantiate a registered objective for a policy exposing `features` (`policy.feature_specs()`)."""
     cls = get_objective(name)
-    return cls(policy_config, cls.Params.model_validate(dict(params or {})))
+    missing = [f for f in cls.feature_names if f not in features]
+    if missing:
+        raise ValueError(
+            f"auxiliary objective {name!r} needs policy feature(s) {missing}; this policy exposes "
+            f"{sorted(features)}"
+        )
+    return cls(features, cls.Params.model_validate(dict(params or {})))
 
 
 class AuxObjective(nn.Module, abc.ABC):
     name = ""
+    feature_names: tuple[str, ...] = ()  # the policy features `forward` reads
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
 
-    def __init__(self, policy_config: PolicyConfig, params: BaseModel):
+    def __init__(self, features: Mapping[str, FeatureSpec], params: BaseModel):
         super().__init__()
-        self.policy_config = policy_config
         self.params = params
         self.register_buffer("privileged_mean", torch.zeros(9))
         self.register_buffer("privileged_std", torch.ones(9))
@@ -79,9 +90,9 @@ class AuxObjective(nn.Module, abc.ABC):
         """Steps ahead the objective needs privileged state for (None: only the current step)."""
         return None
 
-    @abc.abstractmethod
     def required_fields(self) -> list[str]:
         """Dataset fields this objective needs (checked before training starts)."""
+        return ["privileged"]
 
     def fit(self, tensors: Mapping[str, torch.Tensor]) -> None:
         """Take standardization statistics of the privileged state from the training data."""
@@ -93,8 +104,10 @@ class AuxObjective(nn.Module, abc.ABC):
         return (privileged - self.privileged_mean) / self.privileged_std
 
     @abc.abstractmethod
-    def forward(self, policy_out: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """The (unweighted) auxiliary loss for one batch."""
+    def forward(
+        self, features: Mapping[str, list[torch.Tensor]], batch: Mapping[str, torch.Tensor]
+    ) -> torch.Tensor:
+        """The (unweighted) auxiliary loss for one batch, from the policy's per-layer features."""
 
 
 def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
@@ -110,6 +123,8 @@ def _resolve_layer(layer: int, n_layers: int, field: str) -> int:
 
 @register_objective("spatial")
 class SpatialObjective(AuxObjective):
+    feature_names = ("obs_tokens",)
+
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
         layer: int | None = Field(
@@ -121,31 +136,27 @@ class SpatialObjective(AuxObjective):
         fourier_scale: float = Field(1.0, gt=0)
         seed: int = 0
 
-    def __init__(self, policy_config: PolicyConfig, params: Params):
-        super().__init__(policy_config, params)
+    def __init__(self, features: Mapping[str, FeatureSpec], params: Params):
+        super().__init__(features, params)
         if params.feature_dim % 2:
             raise ValueError(f"spatial feature_dim must be even, got {params.feature_dim}")
-        n = policy_config.n_layers
+        spec = features["obs_tokens"]
+        n = spec.n_layers
         default = max(0, math.ceil(0.75 * n) - 1)
         self.layer = _resolve_layer(default if params.layer is None else params.layer, n, "spatial layer")
-        self.head = _mlp(policy_config.d_model, params.hidden_dim, params.feature_dim)
+        self.head = _mlp(spec.dim, params.hidden_dim, params.feature_dim)
         gen = torch.Generator().manual_seed(params.seed)
         self.register_buffer(
             "fourier", torch.randn(9, params.feature_dim // 2, generator=gen) * params.fourier_scale
         )
-        self.register_buffer("token_pos", _sinusoid(policy_config.n_obs_tokens, params.feature_dim))
-
-    def required_fields(self) -> list[str]:
-        return ["privileged", "image"] if self.policy_config.obs_mode == "pixels" else ["privileged"]
+        self.register_buffer("token_pos", _sinusoid(spec.n_tokens, params.feature_dim))
 
     def target(self, privileged: torch.Tensor) -> torch.Tensor:
         z = self.standardize(privileged) @ self.fourier
         return torch.cat([z.sin(), z.cos()], dim=-1)
 
-    def forward(self, policy_out: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        slices = policy_out["token_slices"]
-        obs = slices["vision"] if "vision" in slices else slices["state"]
-        tokens = policy_out["hidden"][self.layer][:, obs]
+    def forward(self, features: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        tokens = features["obs_tokens"][self.layer]
         target = self.target(batch["privileged"])
         if self.params.pooling == "mean":
             pred = self.head(tokens.mean(1))
@@ -166,24 +177,24 @@ def _sinusoid(n: int, dim: int) -> torch.Tensor:
 
 @register_objective("dynamics")
 class DynamicsObjective(AuxObjective):
+    feature_names = ("tokens",)
+
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
         horizon: int = Field(5, gt=0, description="steps ahead, within the episode")
         layer: int = Field(-1, description="hidden layer index (negative from the end)")
         hidden_dim: int = Field(256, gt=0)
 
-    def __init__(self, policy_config: PolicyConfig, params: Params):
-        super().__init__(policy_config, params)
-        self.layer = _resolve_layer(params.layer, policy_config.n_layers, "dynamics layer")
-        self.head = _mlp(policy_config.d_model, params.hidden_dim, 9)
+    def __init__(self, features: Mapping[str, FeatureSpec], params: Params):
+        super().__init__(features, params)
+        spec = features["tokens"]
+        self.layer = _resolve_layer(params.layer, spec.n_layers, "dynamics layer")
+        self.head = _mlp(spec.dim, params.hidden_dim, 9)
 
     @property
     def horizon(self) -> int:
         return self.params.horizon
 
-    def required_fields(self) -> list[str]:
-        return ["privileged"]
-
-    def forward(self, policy_out: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        pooled = policy_out["hidden"][self.layer].mean(1)
+    def forward(self, features: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        pooled = features["tokens"][self.layer].mean(1)
         return F.mse_loss(self.head(pooled), self.standardize(batch["privileged_future"]))

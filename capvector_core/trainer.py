@@ -1,4 +1,7 @@
-"""Supervised training of a VLAPolicy: SFT, SFT + auxiliary objective, plus an extra-loss hook.
+"""The training loop for any `Policy`: SFT, SFT + auxiliary objective, plus an extra-loss hook.
+
+The policy owns its batches and its loss (`capvector_core.policy`); this module keeps only the loop:
+schedule, clipping, non-finite guards, checkpoints, exact resume and the extra losses.
 
 Exact resume: every checkpoint holds the policy and aux-head weights (safetensors), the optimizer
 state, the batch-sampling generator and torch RNG states, and the step. The learning rate is a pure
@@ -34,10 +37,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from capvector_core import tokenizer
 from capvector_core.aux_objectives import AuxObjective, build_objective, get_objective
 from capvector_core.device import resolve_device
-from capvector_core.policy import VLAPolicy, load_policy_weights, save_policy, save_tensors_atomic
+from capvector_core.policy import Policy, load_policy_weights, save_policy, save_tensors_atomic
 
 ExtraLoss = Callable[[nn.Module], torch.Tensor]
 _CKPT = re.compile(r"^step_(\d{8})$")
@@ -108,56 +110,9 @@ def lr_at(step: int, config: TrainConfig) -> float:
     return config.lr * (config.min_lr_ratio + (1.0 - config.min_lr_ratio) * cosine)
 
 
-def _instructions(meta: Any) -> list[str]:
-    tasks = list(meta.tasks)
-    instr = meta.instructions
-    if isinstance(instr, Mapping):
-        missing = [t for t in tasks if t not in instr]
-        if missing:
-            raise ValueError(f"dataset meta has no instruction for task(s) {missing}")
-        return [instr[t] for t in tasks]
-    if len(instr) != len(tasks):
-        raise ValueError(f"dataset meta has {len(instr)} instructions for {len(tasks)} tasks")
-    return list(instr)
-
-
-class SampleTable:
-    """Per-sample index tables, built once: the action chunk rows (N,K) and the future row (N,).
-
-    Chunks never cross an episode end: past it, the episode's last action repeats.
-    """
-
-    def __init__(self, tensors: Mapping[str, torch.Tensor], chunk_size: int, horizon: int | None):
-        episode, step = tensors["episode"].cpu(), tensors["step"].cpu()
-        n = episode.shape[0]
-        new_episode = torch.ones(n, dtype=torch.bool)
-        new_episode[1:] = episode[1:] != episode[:-1]
-        bad = (~new_episode[1:]) & (step[1:] != step[:-1] + 1)
-        if bad.any():
-            i = int(bad.nonzero()[0]) + 1
-            raise ValueError(
-                f"dataset rows must be grouped by episode in step order; row {i} (episode {int(episode[i])}, "
-                f"step {int(step[i])}) does not follow row {i - 1} (step {int(step[i - 1])})"
-            )
-        run = torch.cumsum(new_episode.long(), 0) - 1
-        starts = new_episode.nonzero().squeeze(1)
-        ends = torch.cat([starts[1:] - 1, torch.tensor([n - 1])])
-        last = ends[run]
-        rows = torch.arange(n)
-        self.chunk = torch.minimum(rows[:, None] + torch.arange(chunk_size)[None, :], last[:, None])
-        self.future = torch.minimum(rows + horizon, last) if horizon else None
-
-
-def _check_dataset(dataset: Any, policy: VLAPolicy, objective: AuxObjective | None, batch_size: int) -> None:
+def _check_dataset(dataset: Any, policy: Policy, objective: AuxObjective | None, batch_size: int) -> None:
+    policy.check_dataset(dataset)
     tensors = dataset.tensors
-    obs_key = "image" if policy.config.obs_mode == "pixels" else "state"
-    needed = [obs_key, "proprio", "action", "episode", "step", "task"]
-    missing = [k for k in needed if k not in tensors]
-    if missing:
-        raise ValueError(
-            f"dataset lacks field(s) {missing} needed to train a {policy.config.obs_mode}-mode policy "
-            f"(has: {sorted(tensors)})"
-        )
     if objective is not None:
         missing = [k for k in objective.required_fields() if k not in tensors]
         if missing:
@@ -168,23 +123,6 @@ def _check_dataset(dataset: Any, policy: VLAPolicy, objective: AuxObjective | No
     n = tensors["action"].shape[0]
     if batch_size > n:
         raise ValueError(f"batch_size ({batch_size}) is larger than the dataset ({n} samples)")
-    if obs_key == "image":
-        size = policy.config.image_size
-        if tuple(tensors["image"].shape[1:]) != (size, size, 3):
-            raise ValueError(
-                f"dataset images are {tuple(tensors['image'].shape[1:])}, "
-                f"the policy expects ({size}, {size}, 3)"
-            )
-
-
-def _stats(tensors: Mapping[str, torch.Tensor]) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
-    out = {}
-    for key in ("state", "proprio", "action"):
-        x = tensors[key].double()
-        # Constant dimensions (e.g. an absent second object) get std 1e-2, not ~0: a shift at test
-        # time must not blow up.
-        out[key] = (x.mean(0).float(), x.std(0, unbiased=False).clamp_min(1e-2).float())
-    return out
 
 
 def _checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
@@ -317,7 +255,7 @@ def _line_reporter(label: str, total: int) -> ProgressReport:
 
 
 def train(
-    policy: VLAPolicy,
+    policy: Policy,
     dataset: Any,
     config: TrainConfig,
     run_dir: str | Path,
@@ -340,7 +278,7 @@ def train(
 
     objective = None
     if config.aux is not None:
-        objective = build_objective(config.aux.name, policy.config, config.aux.params)
+        objective = build_objective(config.aux.name, policy.feature_specs(), config.aux.params)
     reserved = {"loss", "action"} | ({objective.name} if objective else set())
     clash = sorted(reserved & set(extra_losses))
     if clash:
@@ -348,25 +286,17 @@ def train(
     _check_dataset(dataset, policy, objective, config.batch_size)
 
     tensors = dataset.tensors
-    if config.fit_normalizer or (config.fit_normalizer is None and not bool(policy.normalizer.fitted)):
-        policy.normalizer.set_stats(_stats(tensors))
+    if config.fit_normalizer or (config.fit_normalizer is None and not policy.normalizer_fitted):
+        policy.fit_normalizer(tensors)
     if objective is not None:
         objective.fit(tensors)
-
-    cfg = policy.config
-    table = SampleTable(tensors, cfg.chunk_size, objective.horizon if objective else None)
-    task_tokens = tokenizer.encode_batch(
-        _instructions(dataset.meta), cfg.vocab_size, cfg.max_instruction_tokens
+    n, make_batch = policy.make_batcher(
+        dataset,
+        device,
+        fields=objective.required_fields() if objective else (),
+        horizon=objective.horizon if objective else None,
     )
-    obs_key = "image" if cfg.obs_mode == "pixels" else "state"
-    keys = [obs_key, "proprio", "action", "task"] + (
-        ["privileged"] if "privileged" in tensors and objective else []
-    )
-    data = {k: tensors[k].to(device) for k in keys}
-    task_tokens = task_tokens.to(device)
-    chunk_rows = table.chunk.to(device)
-    future_rows = table.future.to(device) if table.future is not None else None
-    n = data["action"].shape[0]
+    features = objective.feature_names if objective else ()
 
     policy.to(device).train()
     params = [p for p in policy.parameters() if p.requires_grad]
@@ -384,22 +314,8 @@ def train(
     curve_path = run_dir / "loss_curve.jsonl"
     _truncate_curve(curve_path, start)
 
-    def sample() -> dict[str, torch.Tensor]:
-        idx = torch.randint(n, (config.batch_size,), generator=generator).to(device)
-        batch = {
-            "tokens": task_tokens[data["task"][idx]],
-            obs_key: data[obs_key][idx],
-            "proprio": data["proprio"][idx],
-            "actions": data["action"][chunk_rows[idx]],
-        }
-        if "privileged" in data:
-            batch["privileged"] = data["privileged"][idx]
-            if future_rows is not None:
-                batch["privileged_future"] = data["privileged"][future_rows[idx]]
-        return batch
-
-    names = ["loss", "action"] + ([objective.name] if objective else []) + list(extra_losses) + ["grad_norm"]
-    window = torch.zeros(len(names), dtype=torch.float64, device=device)
+    names: list[str] = []  # loss, the policy's terms, the objective's, the extra losses, grad_norm
+    window = torch.zeros(0, dtype=torch.float64, device=device)
     window_count = 0
     last_loss = float("nan")
     t_start = time.perf_counter()
@@ -410,13 +326,16 @@ def train(
             lr = lr_at(step, config)
             for group in optimizer.param_groups:
                 group["lr"] = lr
-            batch = sample()
-            out = policy(batch)
-            terms = {"action": policy.action_loss(out["actions"], batch["actions"])}
+            batch = make_batch(torch.randint(n, (config.batch_size,), generator=generator))
+            out = policy.compute_loss(batch, features)
+            terms = dict(out.terms)
             if objective is not None:
-                terms[objective.name] = config.aux.weight * objective(out, batch)
+                terms[objective.name] = config.aux.weight * objective(out.features, batch)
             for name, fn in extra_losses.items():
                 terms[name] = fn(policy)
+            if not names:
+                names = _term_names(out.terms, objective, extra_losses)
+                window = torch.zeros(len(names), dtype=torch.float64, device=device)
             total = torch.stack(list(terms.values())).sum()
             values = torch.stack([total.detach(), *(t.detach() for t in terms.values())])
             if not bool(torch.isfinite(values).all()):
@@ -483,6 +402,15 @@ def train(
     )
     (run_dir / "result.json").write_text(result.model_dump_json(indent=1))
     return result
+
+
+def _term_names(policy_terms: Mapping, objective: AuxObjective | None, extra: Mapping) -> list[str]:
+    """Curve columns; a policy term may not share a name with the objective or an extra loss."""
+    others = ([objective.name] if objective else []) + list(extra)
+    clash = sorted(({"loss", "grad_norm"} | set(others)) & set(policy_terms))
+    if clash:
+        raise ValueError(f"policy loss term(s) {clash} collide with the objective's or extra losses' names")
+    return ["loss", *policy_terms, *others, "grad_norm"]
 
 
 def _truncate_curve(path: Path, step: int) -> None:

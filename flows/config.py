@@ -18,7 +18,8 @@ from capvector_core.evaluation import EvalConfig
 from capvector_core.lora import LoraConfig
 from capvector_core.lora_sp import LoraSPConfig
 from capvector_core.metaworld_tasks import validate_task_names
-from capvector_core.policy import PolicyConfig
+from capvector_core.policies import L1ChunkConfig
+from capvector_core.policy import AnyPolicyConfig
 from capvector_core.trainer import AuxConfig, TrainConfig
 from flows.overrides import apply_overrides
 from tasks.training import OrthogonalSettings, TrainStepConfig
@@ -109,7 +110,7 @@ class PipelineConfig(BaseModel):
     name: str = "pipeline"
     splits: Splits
     data: DataSettings = DataSettings()
-    policy: PolicyConfig = PolicyConfig()
+    policy: AnyPolicyConfig = L1ChunkConfig()
     pretrain: TrainConfig
     extraction: TrainConfig
     aux: AuxConfig = AuxConfig(name="dynamics")

@@ -20,10 +20,12 @@ class ConfigKeyError(ValueError):
 
 
 def _model_in(annotation: Any) -> type[BaseModel] | None:
-    """The pydantic model inside an annotation such as `Model`, `Model | None`, `Optional[Model]`."""
+    """The pydantic model inside an annotation such as `Model`, `Model | None`, `Annotated[Model, ...]`."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return annotation
     origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _model_in(typing.get_args(annotation)[0])
     if origin in (typing.Union, types.UnionType):
         for arg in typing.get_args(annotation):
             found = _model_in(arg)
@@ -32,19 +34,24 @@ def _model_in(annotation: Any) -> type[BaseModel] | None:
     return None
 
 
-def _check_path(model: type[BaseModel], path: list[str], full_key: str) -> None:
-    current: type[BaseModel] | None = model
-    for depth, part in enumerate(path):
-        if current is None:
-            prefix = ".".join(path[:depth])
-            raise ConfigKeyError(f"unknown config key {full_key!r}: {prefix!r} has no sub-keys")
-        fields = current.model_fields
-        if part not in fields:
-            hint = difflib.get_close_matches(part, list(fields), n=1)
-            suggestion = f" (did you mean {'.'.join(path[:depth] + hint)!r}?)" if hint else ""
-            known = ", ".join(sorted(fields))
-            raise ConfigKeyError(f"unknown config key {full_key!r}{suggestion}; known here: {known}")
-        current = _model_in(fields[part].annotation)
+def _concrete(model: type[BaseModel], node: dict[str, Any]) -> type[BaseModel]:
+    """A polymorphic config (a policy's) is checked against the class its data's `type` names."""
+    class_for = getattr(model, "class_for", None)
+    return class_for(node) if class_for is not None else model
+
+
+def _check_key(model: type[BaseModel] | None, path: list[str], depth: int) -> None:
+    full_key = ".".join(path)
+    if model is None:
+        prefix = ".".join(path[:depth])
+        raise ConfigKeyError(f"unknown config key {full_key!r}: {prefix!r} has no sub-keys")
+    fields = model.model_fields
+    part = path[depth]
+    if part not in fields:
+        hint = difflib.get_close_matches(part, list(fields), n=1)
+        suggestion = f" (did you mean {'.'.join(path[:depth] + hint)!r}?)" if hint else ""
+        known = ", ".join(sorted(fields))
+        raise ConfigKeyError(f"unknown config key {full_key!r}{suggestion}; known here: {known}")
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -63,9 +70,13 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[Base
     result: dict[str, Any] = _deep_copy(data)
     for text in overrides:
         path, value = parse_override(text)
-        _check_path(model, path, ".".join(path))
         node, current = result, model
-        for part in path[:-1]:
+        for depth, part in enumerate(path):
+            if current is not None:
+                current = _concrete(current, node)
+            _check_key(current, path, depth)
+            if depth == len(path) - 1:
+                break
             field = current.model_fields[part]
             child = node.get(part)
             if not isinstance(child, dict):

@@ -39,7 +39,7 @@ def evaluate_checkpoint(
     """Run the rollouts now (no cache) and register the evaluation; returns its artifact id."""
     eval_config = EvalConfig.model_validate(config)
     policy, form = load_trained_policy(workspace, checkpoint_id, device="auto")
-    result = evaluate(policy.act, eval_config, progress=progress_printer(step, "episodes"))
+    result = evaluate(policy.predict_action_chunk, eval_config, progress=progress_printer(step, "episodes"))
     meta = provenance()
     record = workspace.api.register_evaluation(
         evaluation_doc(workspace.api.get(checkpoint_id).id, result, meta["library_versions"]),

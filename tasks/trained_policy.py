@@ -14,7 +14,7 @@ from pydantic import BaseModel
 
 from capvector_core import lora_sp
 from capvector_core.lora import read_adapter
-from capvector_core.policy import VLAPolicy, load_policy
+from capvector_core.policy import Policy, load_policy
 from tasks.workspace import Workspace
 
 
@@ -46,7 +46,7 @@ def policy_form(workspace: Workspace, checkpoint_id: str) -> PolicyForm:
 
 def load_trained_policy(
     workspace: Workspace, checkpoint_id: str, device: str = "auto"
-) -> tuple[VLAPolicy, PolicyForm]:
+) -> tuple[Policy, PolicyForm]:
     """The policy to evaluate for `checkpoint_id`, and which form it is in."""
     form = policy_form(workspace, checkpoint_id)
     if form.form == "dense":

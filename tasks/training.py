@@ -17,12 +17,12 @@ from typing import Any, Literal
 import torch
 from pydantic import BaseModel, ConfigDict, model_validator
 
-from capvector_core import lora, lora_sp, tokenizer
+from capvector_core import lora, lora_sp
 from capvector_core.demos import DemoDataset
 from capvector_core.lora import LoraConfig
 from capvector_core.lora_sp import LoraSPConfig
 from capvector_core.orthogonal import OrthogonalRegularizer
-from capvector_core.policy import PolicyConfig, VLAPolicy, build_policy, load_policy, save_policy
+from capvector_core.policy import AnyPolicyConfig, Policy, build_policy, load_policy, save_policy
 from capvector_core.trainer import TrainConfig, train
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
@@ -46,7 +46,7 @@ class TrainStepConfig(BaseModel):
     """Everything that decides a trained checkpoint besides its input artifacts."""
 
     model_config = ConfigDict(extra="forbid")
-    policy: PolicyConfig | None = None  # only for training from scratch (no `init` input)
+    policy: AnyPolicyConfig | None = None  # only for training from scratch (no `init` input)
     train: TrainConfig
     adapter: Literal["full", "lora", "lora_sp"] = "full"
     lora: LoraConfig | None = None
@@ -62,7 +62,7 @@ class TrainStepConfig(BaseModel):
         return self
 
 
-def _initial_policy(workspace: Workspace, cfg: TrainStepConfig, init_id: str | None) -> VLAPolicy:
+def _initial_policy(workspace: Workspace, cfg: TrainStepConfig, init_id: str | None) -> Policy:
     """θ from `init`, or a fresh model whose initialisation depends on the training seed alone."""
     torch.manual_seed(cfg.train.seed)  # also seeds adapter initialisation, which follows
     if init_id is None:
@@ -73,7 +73,7 @@ def _initial_policy(workspace: Workspace, cfg: TrainStepConfig, init_id: str | N
 
 
 def _orthogonal(
-    workspace: Workspace, model: VLAPolicy, cfg: TrainStepConfig, inputs: dict[str, str]
+    workspace: Workspace, model: Policy, cfg: TrainStepConfig, inputs: dict[str, str]
 ) -> OrthogonalRegularizer | None:
     if cfg.orthogonal is None:
         return None
@@ -92,22 +92,19 @@ def _orthogonal(
     )
 
 
-def _calibration_batches(model: VLAPolicy, dataset: DemoDataset, seed: int) -> list[dict[str, torch.Tensor]]:
+def _calibration_batches(model: Policy, dataset: DemoDataset, seed: int) -> list[dict[str, torch.Tensor]]:
     """Batches from the training data for LoRA-SP's dense merge (its mean score vector)."""
-    cfg = model.config
-    tokens = tokenizer.encode_batch(
-        list(dataset.meta.instructions), cfg.vocab_size, cfg.max_instruction_tokens
-    )
+    n, make_batch = model.make_batcher(dataset, model.device)
     generator = torch.Generator().manual_seed(seed)
-    obs_key = "image" if cfg.obs_mode == "pixels" else "state"
-    n = dataset.tensors["action"].shape[0]
-    batches = []
-    for _ in range(CALIBRATION_BATCHES):
-        rows = torch.randint(0, n, (min(256, n),), generator=generator)
-        batch = {k: dataset.tensors[k][rows].to(model.device) for k in (obs_key, "proprio")}
-        batch["tokens"] = tokens[dataset.tensors["task"][rows]].to(model.device)
-        batches.append(batch)
-    return batches
+    return [
+        make_batch(torch.randint(0, n, (min(256, n),), generator=generator))
+        for _ in range(CALIBRATION_BATCHES)
+    ]
+
+
+def _policy_loss(model: Policy, batch: dict[str, torch.Tensor]) -> None:
+    """Calibration runs the policy's own loss: every policy type has one (not all have `forward`)."""
+    model.compute_loss(batch)
 
 
 def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
@@ -150,7 +147,9 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                 adapter_dir = lora.save_adapter(model, tmp / "adapter")
                 lora.merge_lora(model)
             elif cfg.adapter == "lora_sp":
-                lora_sp.calibrate(model, _calibration_batches(model, dataset, cfg.train.seed))
+                lora_sp.calibrate(
+                    model, _calibration_batches(model, dataset, cfg.train.seed), forward=_policy_loss
+                )
                 summary["active_ranks"] = lora_sp.active_ranks(model, since_reset=True)
                 adapter_dir = lora_sp.save_adapter(model, tmp / "adapter")
                 lora.merge_lora(model)
@@ -163,8 +162,12 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             meta = provenance()
             if adapter_dir is not None:  # first: the checkpoint (the commit point) names it as a parent
                 adapter = workspace.api.register_dir(
-                    adapter_dir, kind="adapter", name=f"{step} adapter",
-                    config={"adapter": cfg.adapter, "summary": summary}, parents=parents, **meta,
+                    adapter_dir,
+                    kind="adapter",
+                    name=f"{step} adapter",
+                    config={"adapter": cfg.adapter, "summary": summary},
+                    parents=parents,
+                    **meta,
                 )
                 parents.append((adapter.id, "adapter"))
             record_config = {

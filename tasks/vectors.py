@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from capvector_core import vector_ops
-from capvector_core.policy import build_policy, load_policy_weights, read_policy_config, save_policy
 from capvector_core.vector_ops import VectorStat, group_of
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
@@ -83,7 +81,7 @@ def run_extract(workspace: Workspace, step: str, inputs: dict[str, str], config:
 
 
 def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    """θ = base + α·vector, re-saved as a policy checkpoint (so it loads like any other)."""
+    """θ = base + α·vector; the merged file keeps base's metadata, so it loads as the same policy type."""
     cfg = MergeConfig.model_validate(config)
     for role in ("base", "vector"):
         if role not in inputs:
@@ -95,16 +93,13 @@ def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             merged = vector_ops.merge(
                 base,
                 [(workspace.path(inputs["vector"]), cfg.alpha)],
-                tmp / "merged.safetensors",
+                tmp / "model.safetensors",
                 cfg.include,
                 cfg.exclude,
             )
-            model = build_policy(read_policy_config(base), device="cpu")
-            load_policy_weights(model, merged)
             formula = {"formula": "base + alpha * vector", "alpha": cfg.alpha}
-            out = save_policy(model, tmp / "model.safetensors", {"capvector.merge": json.dumps(formula)})
             record = workspace.api.register_file(
-                out,
+                merged,
                 kind="checkpoint",
                 name=step,
                 config={**formula, **cfg.model_dump(), "cache_key": key},

@@ -4,14 +4,19 @@ import pytest
 import torch
 
 from capvector_core.aux_objectives import build_objective, get_objective, known_objectives, register_objective
-from capvector_core.policy import PolicyConfig, VLAPolicy
+from capvector_core.policy import build_policy
 from capvector_core.tokenizer import encode_batch
 
 TINY = dict(d_model=32, n_layers=4, n_heads=4, chunk_size=3, vocab_size=64, max_instruction_tokens=6)
 
 
+def features(**config):
+    return build_policy({**TINY, **config}, "cpu").feature_specs()
+
+
 def batch(config, b=6):
     return {
+        "actions": torch.randn(b, config.chunk_size, 4),
         "tokens": encode_batch(["push the puck"] * b, config.vocab_size, config.max_instruction_tokens),
         "state": torch.randn(b, 39),
         "proprio": torch.randn(b, 4),
@@ -30,11 +35,12 @@ def test_registry():
     with pytest.raises(ValueError, match="already registered"):
         register_objective("spatial")(get_objective("spatial"))
     with pytest.raises(ValueError, match="n_layers=4"):
-        build_objective("spatial", PolicyConfig(**TINY), {"layer": 7})
+        build_objective("spatial", features(), {"layer": 7})
     with pytest.raises(ValueError, match="extra"):
-        build_objective("dynamics", PolicyConfig(**TINY), {"horizn": 3})
+        build_objective("dynamics", features(), {"horizn": 3})
 
 
+@pytest.mark.parametrize("policy_type", ["l1_chunk", "flow"])
 @pytest.mark.parametrize(
     "mode,name,params",
     [
@@ -44,14 +50,16 @@ def test_registry():
         ("state", "dynamics", {"horizon": 2}),
     ],
 )
-def test_loss_finite_grads_where_expected_and_heads_separate(mode, name, params):
-    config = PolicyConfig(obs_mode=mode, image_size=16, stem_channels=[8, 8], **TINY)
-    policy = VLAPolicy(config)
+def test_loss_finite_grads_where_expected_and_heads_separate(policy_type, mode, name, params):
+    policy = build_policy(
+        {"type": policy_type, "obs_mode": mode, "image_size": 16, "stem_channels": [8, 8], **TINY}, "cpu"
+    )
+    config = policy.config
     keys_before = set(policy.state_dict())
-    objective = build_objective(name, config, params)
+    objective = build_objective(name, policy.feature_specs(), params)
     b = batch(config)
     objective.fit({"privileged": torch.randn(50, 9) * 3 + 1})
-    loss = objective(policy(b), b)
+    loss = objective(policy.compute_loss(b, objective.feature_names).features, b)
     assert loss.ndim == 0 and torch.isfinite(loss)
     loss.backward()
     assert set(policy.state_dict()) == keys_before  # heads are not policy weights
@@ -72,16 +80,20 @@ def test_loss_finite_grads_where_expected_and_heads_separate(mode, name, params)
 
 
 def test_spatial_required_fields_and_default_layer():
-    assert build_objective("spatial", PolicyConfig(**TINY)).required_fields() == ["privileged"]
-    pix = PolicyConfig(obs_mode="pixels", image_size=16, stem_channels=[8, 8], **TINY)
-    spatial = build_objective("spatial", pix)
-    assert spatial.required_fields() == ["privileged", "image"]
+    assert build_objective("spatial", features()).required_fields() == ["privileged"]
+    spatial = build_objective("spatial", features(obs_mode="pixels", image_size=16, stem_channels=[8, 8]))
+    assert spatial.required_fields() == ["privileged"]  # the image is the policy's own requirement
+    assert spatial.token_pos.shape[0] == 16  # one position per vision token of the 4x4 grid
     assert spatial.layer == 2  # 3/4 depth of 4 layers (SF: an intermediate, fairly deep layer)
 
 
+def test_objective_refuses_a_policy_without_its_feature():
+    with pytest.raises(ValueError, match=r"needs policy feature\(s\) \['obs_tokens'\]"):
+        build_objective("spatial", {"tokens": features()["tokens"]})
+
+
 def test_spatial_target_is_fixed():
-    config = PolicyConfig(**TINY)
-    a, b = build_objective("spatial", config), build_objective("spatial", config)
+    a, b = build_objective("spatial", features()), build_objective("spatial", features())
     x = torch.randn(4, 9)
     assert torch.equal(a.target(x), b.target(x))
     assert not any("fourier" in n for n, _ in a.named_parameters())

@@ -1,4 +1,6 @@
-"""Policy: shapes in both modes, stable names, exact save/load, config mismatch, tokenizer."""
+"""Policies: the interface on both built-in types, stable names, exact save/load, dispatch, errors."""
+
+import json
 
 import numpy as np
 import pytest
@@ -6,20 +8,24 @@ import torch
 from pydantic import ValidationError
 
 from capvector_core import tokenizer
+from capvector_core.policies import FlowConfig, FlowPolicy, L1ChunkConfig, L1ChunkPolicy
 from capvector_core.policy import (
     CONFIG_METADATA_KEY,
-    PolicyConfig,
-    VLAPolicy,
+    build_policy,
     load_policy,
     load_policy_weights,
+    parse_policy_config,
+    policy_types,
     read_metadata,
     save_policy,
+    save_tensors_atomic,
 )
 
 TINY = dict(d_model=32, n_layers=2, n_heads=4, chunk_size=3, vocab_size=64, max_instruction_tokens=6)
+TYPES = ["l1_chunk", "flow"]
 
 
-def batch(config: PolicyConfig, b: int = 5) -> dict:
+def batch(config, b: int = 5) -> dict:
     return {
         "tokens": tokenizer.encode_batch(
             ["open the door"] * b, config.vocab_size, config.max_instruction_tokens
@@ -27,29 +33,42 @@ def batch(config: PolicyConfig, b: int = 5) -> dict:
         "state": torch.randn(b, 39),
         "proprio": torch.randn(b, 4),
         "image": torch.randint(0, 256, (b, config.image_size, config.image_size, 3), dtype=torch.uint8),
+        "actions": torch.rand(b, config.chunk_size, 4) * 2 - 1,
     }
 
 
+def fitted(policy):
+    policy.normalizer.set_stats(
+        {k: (torch.randn(d), torch.rand(d) + 0.5) for k, d in [("state", 39), ("proprio", 4), ("action", 4)]}
+    )
+    return policy
+
+
+@pytest.mark.parametrize("policy_type", TYPES)
 @pytest.mark.parametrize("mode,n_obs", [("state", 5), ("pixels", 4)])
-def test_forward_shapes(mode, n_obs):
-    config = PolicyConfig(obs_mode=mode, image_size=32, stem_channels=[8, 8, 8, 8], **TINY)
-    out = VLAPolicy(config)(batch(config))
-    assert out["actions"].shape == (5, 3, 4)
-    assert len(out["hidden"]) == 2
-    assert out["hidden"][0].shape == (5, config.n_tokens, 32)
-    obs = out["token_slices"]["vision" if mode == "pixels" else "state"]
-    assert obs.stop - obs.start == n_obs == config.n_obs_tokens
+def test_loss_and_features(policy_type, mode, n_obs):
+    config = {"type": policy_type, "obs_mode": mode, "image_size": 32, "stem_channels": [8, 8, 8, 8], **TINY}
+    policy = build_policy(config, "cpu")
+    out = policy.compute_loss(batch(policy.config), ["obs_tokens", "tokens"])
+    assert out.loss.ndim == 0 and torch.isfinite(out.loss) and set(out.terms) == {"action"}
+    specs = policy.feature_specs()
+    assert specs["obs_tokens"].n_tokens == n_obs
+    assert [f.shape for f in out.features["obs_tokens"]] == [(5, n_obs, 32)] * 2
+    assert out.features["tokens"][0].shape == (5, specs["tokens"].n_tokens, 32)
+    out.loss.backward()
+    assert policy.action_head.proj.weight.grad is not None
+    with pytest.raises(ValueError, match="no feature"):
+        policy.compute_loss(batch(policy.config), ["depth"])
 
 
 def test_parameter_names_are_stable():
-    keys = set(VLAPolicy(PolicyConfig(**TINY)).state_dict())
-    for key in [
+    keys = set(L1ChunkPolicy(L1ChunkConfig(**TINY)).state_dict())
+    shared = [
         "language.embed.weight",
         "state.proj.hand.weight",
         "state.proj.goal.bias",
         "proprio.proj.weight",
         "embeddings.position",
-        "embeddings.action_queries",
         "embeddings.token_type.weight",
         "backbone.layers.0.attn.q_proj.weight",
         "backbone.layers.1.attn.o_proj.bias",
@@ -59,32 +78,60 @@ def test_parameter_names_are_stable():
         "action_head.proj.weight",
         "normalizer.action_std",
         "normalizer.fitted",
-    ]:
+    ]
+    for key in [*shared, "embeddings.action_queries"]:
         assert key in keys, key
-    pixels = set(VLAPolicy(PolicyConfig(obs_mode="pixels", image_size=32, **TINY)).state_dict())
+    flow = set(FlowPolicy(FlowConfig(**TINY)).state_dict())
+    for key in [
+        *shared,
+        "action_expert.action_in.weight",
+        "action_expert.time_mlp_in.weight",
+        "action_expert.position",
+        "action_expert.layers.1.attn.k_proj.weight",
+        "action_expert.layers.0.mlp.fc2.bias",
+        "action_expert.norm.weight",
+    ]:
+        assert key in flow, key
+    assert "embeddings.action_queries" not in flow
+    pixels = set(L1ChunkPolicy(L1ChunkConfig(obs_mode="pixels", image_size=32, **TINY)).state_dict())
     assert {"vision.stem.0.weight", "vision.proj.weight"} <= pixels
     assert not any(k.startswith("state.") for k in pixels)
 
 
-def test_save_load_roundtrip_is_exact(tmp_path):
-    config = PolicyConfig(obs_mode="pixels", image_size=32, **TINY)
-    model = VLAPolicy(config)
-    model.normalizer.set_stats(
-        {k: (torch.randn(d), torch.rand(d) + 0.5) for k, d in [("state", 39), ("proprio", 4), ("action", 4)]}
-    )
+@pytest.mark.parametrize("policy_type", TYPES)
+def test_save_load_roundtrip_is_exact_and_dispatches_on_type(tmp_path, policy_type):
+    model = fitted(build_policy({"type": policy_type, "obs_mode": "pixels", "image_size": 32, **TINY}, "cpu"))
     path = save_policy(model, tmp_path / "p.safetensors", metadata={"note": "hi"})
-    assert read_metadata(path)["note"] == "hi"
-    assert PolicyConfig.model_validate_json(read_metadata(path)[CONFIG_METADATA_KEY]) == config
+    meta = read_metadata(path)
+    assert meta["note"] == "hi" and json.loads(meta[CONFIG_METADATA_KEY])["type"] == policy_type
     loaded = load_policy(path, device="cpu")
+    assert type(loaded) is type(model) and loaded.config == model.config
     for k, v in model.state_dict().items():
         assert torch.equal(v, loaded.state_dict()[k]), k
-    b = batch(config)
-    assert torch.equal(model.eval()(b)["actions"], loaded.eval()(b)["actions"])
+    obs = {"image": batch(model.config)["image"].numpy(), "proprio": np.zeros((5, 4), np.float32)}
+    tasks = ["reach-v3"] * 5
+    assert np.array_equal(model.predict_action_chunk(obs, tasks), loaded.predict_action_chunk(obs, tasks))
+
+
+def test_a_file_from_before_policy_types_loads_as_l1_chunk(tmp_path):
+    model = L1ChunkPolicy(L1ChunkConfig(**TINY))
+    old_config = model.config.model_dump(mode="json", exclude={"type"})
+    tensors = {k: v.contiguous() for k, v in model.state_dict().items()}
+    save_tensors_atomic(tensors, tmp_path / "old.safetensors", {CONFIG_METADATA_KEY: json.dumps(old_config)})
+    assert isinstance(load_policy(tmp_path / "old.safetensors", "cpu"), L1ChunkPolicy)
+
+
+def test_unknown_type_names_the_known_ones():
+    assert {"l1_chunk", "flow"} <= set(policy_types())
+    with pytest.raises(ValueError, match=r"unknown policy type 'pi0'; known: \[.*'flow'.*'l1_chunk'"):
+        parse_policy_config({"type": "pi0"})
+    with pytest.raises(ValidationError, match="integration_steps"):
+        parse_policy_config({"type": "l1_chunk", "integration_steps": 4})  # a flow-only field
 
 
 def test_config_mismatch_names_keys_and_shapes(tmp_path):
-    path = save_policy(VLAPolicy(PolicyConfig(**TINY)), tmp_path / "p.safetensors")
-    other = VLAPolicy(PolicyConfig(**{**TINY, "d_model": 48, "n_layers": 3}))
+    path = save_policy(L1ChunkPolicy(L1ChunkConfig(**TINY)), tmp_path / "p.safetensors")
+    other = L1ChunkPolicy(L1ChunkConfig(**{**TINY, "d_model": 48, "n_layers": 3}))
     with pytest.raises(ValueError) as err:
         load_policy_weights(other, path)
     msg = str(err.value)
@@ -95,18 +142,20 @@ def test_config_mismatch_names_keys_and_shapes(tmp_path):
 
 def test_bad_configs_name_the_field():
     with pytest.raises(ValidationError, match="divisible by n_heads"):
-        PolicyConfig(d_model=30, n_heads=4)
+        L1ChunkConfig(d_model=30, n_heads=4)
     with pytest.raises(ValidationError, match="image_size"):
-        PolicyConfig(obs_mode="pixels", image_size=40, stem_channels=[8, 8, 8, 8])
+        L1ChunkConfig(obs_mode="pixels", image_size=40, stem_channels=[8, 8, 8, 8])
     with pytest.raises(ValidationError, match="d_model"):
-        PolicyConfig(d_model=0)
+        L1ChunkConfig(d_model=0)
     with pytest.raises(ValidationError, match="stem_channels"):
-        PolicyConfig(stem_channels=[])
+        L1ChunkConfig(stem_channels=[])
+    with pytest.raises(ValidationError, match="integration_steps"):
+        FlowConfig(integration_steps=0)
 
 
-def test_act_returns_clipped_env_actions():
-    config = PolicyConfig(**TINY)
-    model = VLAPolicy(config)
+@pytest.mark.parametrize("policy_type", TYPES)
+def test_predict_returns_clipped_env_actions_deterministically(policy_type):
+    model = build_policy({"type": policy_type, **TINY}, "cpu")
     model.normalizer.set_stats(
         {
             "state": (torch.zeros(39), torch.ones(39)),
@@ -115,12 +164,28 @@ def test_act_returns_clipped_env_actions():
         }
     )
     obs = {"state": np.random.randn(3, 39).astype(np.float32), "proprio": np.zeros((3, 4), np.float32)}
-    out = model.act(obs, ["reach-v3", "door-open-v3", "reach-v3"])
+    out = model.predict_action_chunk(obs, ["reach-v3", "door-open-v3", "reach-v3"])
     assert out.shape == (3, 3, 4) and out.dtype == np.float32
     assert np.abs(out).max() <= 1.0
-    assert model.training  # act restores the mode
+    assert model.training  # prediction restores the mode
+    # the same observation gives the same chunk alone or in a batch (flow: fixed inference noise)
+    alone = model.predict_action_chunk({k: v[1:2] for k, v in obs.items()}, ["door-open-v3"])
+    assert np.allclose(alone[0], out[1], atol=1e-3)  # batched matmuls round differently (x100 std)
     with pytest.raises(ValueError, match="no instruction"):
-        model.act(obs, ["nope-v3"] * 3)
+        model.predict_action_chunk(obs, ["nope-v3"] * 3)
+
+
+def test_flow_inference_integrates_its_velocity():
+    """With a velocity that is constant, Euler integration from the noise lands exactly at noise - v."""
+    model = FlowPolicy(FlowConfig(**TINY, integration_steps=4)).eval()
+    with torch.no_grad():
+        model.action_head.proj.weight.zero_()
+        model.action_head.proj.bias.copy_(torch.tensor([0.5, -0.25, 0.0, 1.0]))
+    b = batch(model.config, 2)
+    generator = torch.Generator().manual_seed(model.config.inference_seed)
+    noise = torch.randn(model.config.chunk_size, 4, generator=generator)
+    expected = noise - torch.tensor([0.5, -0.25, 0.0, 1.0])
+    assert torch.allclose(model.sample_actions(b), expected.expand(2, -1, -1), atol=1e-6)
 
 
 def test_tokenizer_is_deterministic_and_padded():
@@ -139,8 +204,8 @@ def test_saved_file_is_byte_identical_across_processes(tmp_path):
     import sys
 
     script = (
-        "import sys, torch; from capvector_core.policy import PolicyConfig, build_policy, save_policy\n"
-        "torch.manual_seed(0); m = build_policy(PolicyConfig(d_model=16, n_layers=1, n_heads=2), 'cpu')\n"
+        "import sys, torch; from capvector_core.policy import build_policy, save_policy\n"
+        "torch.manual_seed(0); m = build_policy({'d_model': 16, 'n_layers': 1, 'n_heads': 2}, 'cpu')\n"
         "save_policy(m, sys.argv[1], {'b': '1', 'a': '2', 'c': '3'})\n"
     )
     digests = set()

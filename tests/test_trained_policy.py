@@ -7,7 +7,8 @@ from capvector_core import lora_sp
 from capvector_core.evaluation import EvalConfig
 from capvector_core.lora import LoraConfig
 from capvector_core.lora_sp import LoraSPConfig
-from capvector_core.policy import PolicyConfig, VLAPolicy, load_policy, save_policy
+from capvector_core.policies import L1ChunkConfig, L1ChunkPolicy
+from capvector_core.policy import load_policy, save_policy
 from tasks import evaluation
 from tasks.trained_policy import load_trained_policy, policy_form
 from tasks.training import run_train
@@ -24,7 +25,7 @@ def trained(tmp_path):
     dataset = make_dataset()
     data_id = workspace.api.register_dir(dataset.save(tmp_path / "data"), kind="dataset", name="demos").id
     torch.manual_seed(0)
-    init = VLAPolicy(PolicyConfig(**TINY))
+    init = L1ChunkPolicy(L1ChunkConfig(**TINY))
     init_id = workspace.api.register_file(
         save_policy(init, tmp_path / "init.safetensors"), kind="checkpoint", name="init"
     ).id
@@ -39,9 +40,9 @@ def trained(tmp_path):
     }
 
 
-def _actions(policy: VLAPolicy, dataset) -> torch.Tensor:
+def _actions(policy: L1ChunkPolicy, dataset) -> torch.Tensor:
     obs = {key: dataset.tensors[key][:8].numpy() for key in ("state", "proprio")}
-    return torch.as_tensor(policy.act(obs, ["reach-v3"] * 8))
+    return torch.as_tensor(policy.predict_action_chunk(obs, ["reach-v3"] * 8))
 
 
 def test_lora_sp_checkpoint_is_evaluated_as_init_plus_adapter(trained):
