@@ -9,6 +9,7 @@ from __future__ import annotations
 import difflib
 import types
 import typing
+import warnings
 from typing import Any
 
 import yaml
@@ -86,7 +87,21 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[Base
                 node[part] = child
             node, current = child, _model_in(field.annotation)
         node[path[-1]] = value
+        if path[-1] == "type" and current is not None:
+            _drop_fields_of_other_type(node, _concrete(current, node), ".".join(path[:-1]))
     return result
+
+
+def _drop_fields_of_other_type(node: dict[str, Any], model: type[BaseModel], where: str) -> None:
+    """A new `type` takes the settings it shares with the old one; the rest no longer apply (said once)."""
+    dropped = sorted(k for k in node if k not in model.model_fields)
+    for key in dropped:
+        del node[key]
+    if dropped:
+        warnings.warn(
+            f"{where}.type={node['type']}: {', '.join(dropped)} do not apply to this type and were dropped",
+            stacklevel=3,
+        )
 
 
 def _deep_copy(data: dict[str, Any]) -> dict[str, Any]:

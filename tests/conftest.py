@@ -28,14 +28,16 @@ import pytest  # noqa: E402
 REPO = Path(__file__).resolve().parent.parent
 
 
-def run_cli(*args: str, home: Path, check: bool = True, timeout: float = 900) -> subprocess.CompletedProcess:
+def run_cli(
+    *args: str, home: Path, check: bool = True, timeout: float = 900, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
     """The real console entry point in a subprocess, as a user runs it.
 
     Output goes through files, not pipes, and the command runs in its own session whose leftovers are
     killed afterwards: a grandchild that outlives the command (Prefect's embedded API server on its
     way down) must neither keep the test waiting for end-of-file nor linger.
     """
-    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
+    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1", **(env or {})}
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(
             [sys.executable, "-m", "flows.cli", *args],

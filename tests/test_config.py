@@ -89,3 +89,23 @@ def test_ood_camera_changes_only_the_camera_of_the_test_protocol():
 def test_bad_ood_camera_is_refused_with_the_reason(preset, camera, message):
     with pytest.raises(ValidationError, match=message):
         load_config(preset, [f"evaluation.ood_camera={camera}"])
+
+
+def test_policy_type_override_checks_keys_against_that_type():
+    config = load_config("smoke", ["policy.type=flow", "policy.integration_steps=5"])
+    assert config.policy.type == "flow" and config.policy.integration_steps == 5
+    assert config.policy.d_model == 32  # the preset's backbone settings carry over
+    step = config.pretrain_step().model_dump(mode="json")
+    assert step["policy"]["integration_steps"] == 5  # the cache key sees every field of the type
+    with pytest.raises(ConfigKeyError, match=r"'policy.integration_steps'.*known here: .*d_model"):
+        load_config("smoke", ["policy.integration_steps=5"])  # an l1_chunk policy has no such field
+    with pytest.raises(ValueError, match=r"unknown policy type 'pi0'; known: \['flow', 'l1_chunk'"):
+        load_config("smoke", ["policy.type=pi0"])
+
+
+def test_switching_policy_type_drops_settings_the_new_type_lacks(monkeypatch):
+    monkeypatch.syspath_prepend(str(__import__("conftest").REPO / "tests" / "policy_plugin"))
+    monkeypatch.setattr("capvector_core.policy._entry_points_loaded", False)
+    with pytest.warns(UserWarning, match=r"policy.type=mlp: d_model, n_heads do not apply"):
+        config = load_config("smoke", ["policy.type=mlp", "policy.hidden=16"])
+    assert config.policy.type == "mlp" and config.policy.hidden == 16 and config.policy.n_layers == 2
