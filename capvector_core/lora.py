@@ -1,41 +1,59 @@
-"""LoRA adapters on chosen linear layers of any `nn.Module`, saved in the peft layout, mergeable to dense.
+"""LoRA on chosen `nn.Linear` layers of any `nn.Module`, through peft: peft's layers, layout and loader.
 
-Targets are `nn.Linear` modules picked by name patterns, peft style: a pattern matches a module name when
-it matches the whole name as a shell glob (`backbone.blocks.*.attn.qkv`), or matches its trailing dotted
-components (`qkv` matches `backbone.blocks.0.attn.qkv`); `re:` prefixes a regular expression on the whole
-name. A pattern that matches no linear layer is an error, naming it.
+Why peft: it is the library our users already have. `apply_lora` injects peft's LoRA layers in place
+(`peft.inject_adapter_in_model`); `save_adapter` writes what `peft.PeftModel.from_pretrained(policy, dir)`
+loads (`adapter_model.safetensors` with `base_model.model.<module>.lora_A.weight` (r × in) and
+`...lora_B.weight` (out × r), and peft's own `adapter_config.json`); `load_adapter` goes through peft, so a
+peft-made adapter's `use_rslora`, `alpha_pattern` and `rank_pattern` give peft's scaling; `merge_lora` folds
+each adapter in with peft's own merge, so it equals peft's `merge_and_unload()` tensor for tensor.
 
-Only real `nn.Linear` modules are adapted. `nn.MultiheadAttention` keeps its q/k/v projection in a bare
-`in_proj_weight` parameter, which cannot be targeted; its `out_proj` is an `nn.Linear` that the attention
-reads through `.weight` without calling it, so the wrapper exposes the effective `weight` (W + s·B·A) and
-`bias`: LoRA on `out_proj`, and PyTorch's fused inference path of `nn.TransformerEncoderLayer`, both
-see the adapted weights.
+Targets are picked with `capvector_core.module_patterns` (one syntax for every name filter); only real
+`nn.Linear` modules count, and a pattern matching none is an error naming it. The saved
+`target_modules` is the peft regex of those patterns (`module_patterns.to_peft_regex`), or, when the
+patterns also match modules that are not adapted (containers, non-linear layers), the regex of the exact
+adapted names, so peft adapts the same modules we did.
 
-Saved layout (peft): `adapter_model.safetensors` with keys `base_model.model.<module>.lora_A.weight`
-(r × in) and `...lora_B.weight` (out × r), and `adapter_config.json` with peft's fields.
+Refused: `nn.Linear` children of `nn.MultiheadAttention` (it reads `out_proj.weight` without calling the
+layer, so a peft layer there would silently do nothing). Adapted layers inside `nn.TransformerEncoderLayer`
+get a no-op forward pre-hook, which keeps that layer off its fused inference path (which reads `.weight`
+and would skip the adapter); a model loaded with plain peft does not get it.
+
+peft reads `model.config` as a dict (`to_dict()`), e.g. for `merge_and_unload`; a model whose `config` is
+something else is refused here with that reason rather than failing deep inside peft.
 """
 
 from __future__ import annotations
 
-import fnmatch
+import copy
+import dataclasses
 import json
 import math
 import os
 import re
-from collections.abc import Callable
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from capvector_core import module_patterns
 from capvector_core.safetensors_io import atomic_directory
+
+if TYPE_CHECKING:
+    import peft
+    from peft.tuners.lora import LoraLayer
 
 ADAPTER_WEIGHTS = "adapter_model.safetensors"
 ADAPTER_CONFIG = "adapter_config.json"
 PEFT_PREFIX = "base_model.model."
+ADAPTER_NAME = "default"
+# peft LoRA features that wrap modules other than nn.Linear (or add trainable non-LoRA state): not loaded.
+_UNSUPPORTED = ("modules_to_save", "trainable_token_indices", "target_parameters", "layer_replication")
 
 
 class LoraConfig(BaseModel):
@@ -43,95 +61,137 @@ class LoraConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    target_modules: list[str] = Field(min_length=1)
+    target_modules: list[str] = Field(min_length=1)  # module_patterns syntax
     r: int = Field(8, ge=1)
     alpha: float = 16.0
     dropout: float = Field(0.0, ge=0.0, lt=1.0)
     init: Literal["kaiming", "gaussian"] = "kaiming"  # how A starts (peft's default / `gaussian`)
+    use_rslora: bool = False  # scaling alpha/√r instead of alpha/r (peft's rsLoRA)
 
     @property
     def scaling(self) -> float:
-        return self.alpha / self.r
+        return self.alpha / (math.sqrt(self.r) if self.use_rslora else self.r)
+
+    def to_peft(self, target_modules: str) -> peft.LoraConfig:
+        import peft
+
+        return peft.LoraConfig(
+            target_modules=target_modules,
+            r=self.r,
+            lora_alpha=self.alpha,
+            lora_dropout=self.dropout,
+            init_lora_weights=True if self.init == "kaiming" else "gaussian",
+            use_rslora=self.use_rslora,
+        )
 
 
-def module_matches(name: str, pattern: str) -> bool:
-    if pattern.startswith("re:"):
-        return re.fullmatch(pattern[3:], name) is not None
-    return fnmatch.fnmatchcase(name, pattern) or fnmatch.fnmatchcase(name, "*." + pattern)
+@runtime_checkable
+class MergeableAdapter(Protocol):
+    """A project adapter over an `nn.Linear` that peft does not know (LoRA-SP): `merge_lora` replaces it
+    by `merge_into_base()`, its base layer with the dense update folded in."""
+
+    def merge_into_base(self) -> nn.Linear: ...
 
 
-class LoraLinear(nn.Module):
-    """y = W₀x + b + s·B·A·dropout(x), s = alpha / r; W₀ and b frozen."""
+def _peft_layer_types() -> tuple[type, type] | None:
+    """(LoraLayer, BaseTunerLayer), or None while peft is not imported (then no model has its layers).
 
-    def __init__(self, base: nn.Linear, config: LoraConfig, r: int | None = None):
-        super().__init__()
-        r = r or config.r
-        self.config = config
-        self.base_layer = base
-        self.scaling = config.alpha / r
-        kw = {"device": base.weight.device, "dtype": base.weight.dtype}
-        self.lora_A = nn.Linear(base.in_features, r, bias=False, **kw)
-        self.lora_B = nn.Linear(r, base.out_features, bias=False, **kw)
-        self.lora_dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
-        if config.init == "kaiming":
-            nn.init.kaiming_uniform_(self.lora_A.weight, a=math.sqrt(5))
-        else:
-            nn.init.normal_(self.lora_A.weight, std=1.0 / r)
-        nn.init.zeros_(self.lora_B.weight)
-        for p in base.parameters():
-            p.requires_grad_(False)
+    peft is imported only when needed: it imports transformers, seconds of start-up for every command
+    that merely reads a `LoraConfig` or loads a LoRA-SP adapter.
+    """
+    if "peft" not in sys.modules:
+        return None
+    from peft.tuners.lora import LoraLayer
+    from peft.tuners.tuners_utils import BaseTunerLayer
 
-    @property
-    def in_features(self) -> int:
-        return self.base_layer.in_features
-
-    @property
-    def out_features(self) -> int:
-        return self.base_layer.out_features
-
-    def delta_weight(self) -> torch.Tensor:
-        """The dense update s·B·A (out × in), differentiable in A and B."""
-        return (self.lora_B.weight @ self.lora_A.weight) * self.scaling
-
-    @property
-    def weight(self) -> torch.Tensor:
-        return self.base_layer.weight + self.delta_weight().to(self.base_layer.weight.dtype)
-
-    @property
-    def bias(self) -> torch.Tensor | None:
-        return self.base_layer.bias
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.base_layer(x) + self.lora_B(self.lora_A(self.lora_dropout(x))) * self.scaling
-
-    def adapter_tensors(self) -> dict[str, torch.Tensor]:
-        """Tensors saved per module, keyed by the suffix after the module name."""
-        return {"lora_A.weight": self.lora_A.weight, "lora_B.weight": self.lora_B.weight}
+    return LoraLayer, BaseTunerLayer
 
 
-def find_targets(model: nn.Module, patterns: list[str], forbid_in_mha: bool = False) -> list[str]:
-    """Names of the `nn.Linear` modules matched by `patterns`; error on patterns that match none."""
-    inside_adapter = {
-        f"{n}.{c}"
-        for n, m in model.named_modules()
-        if isinstance(m, LoraLinear)
-        for c, _ in m.named_modules()
-        if c
-    }
-    linears = [n for n, m in model.named_modules() if isinstance(m, nn.Linear) and n not in inside_adapter]
-    dead = [p for p in patterns if not any(module_matches(n, p) for n in linears)]
-    if dead:
-        raise ValueError(f"target pattern(s) match no nn.Linear module: {', '.join(map(repr, dead))}")
-    names = [n for n in linears if any(module_matches(n, p) for p in patterns)]
-    if forbid_in_mha:
-        mha = {n for n, m in model.named_modules() if isinstance(m, nn.MultiheadAttention)}
-        bad = [n for n in names if n.rpartition(".")[0] in mha]
-        if bad:
-            raise ValueError(
-                f"{bad} belong to nn.MultiheadAttention, which reads their weight directly: "
-                "an input-dependent adapter cannot act there"
-            )
+def adapter_modules(model: nn.Module) -> dict[str, LoraLayer]:
+    """The peft LoRA layers of `model`, by module name."""
+    types = _peft_layer_types()
+    return {n: m for n, m in model.named_modules() if isinstance(m, types[0])} if types else {}
+
+
+def _own_adapters(model: nn.Module) -> dict[str, nn.Module]:
+    return {n: m for n, m in model.named_modules() if isinstance(m, MergeableAdapter)}
+
+
+def trainable_parameter_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def plain_adapters(layer: LoraLayer) -> list[str]:
+    """The active adapters of a peft LoRA layer, whose update is s·B·A; variants (DoRA, …) are refused."""
+    variants = [a for a in layer.active_adapters if a in getattr(layer, "lora_variant", {})]
+    if variants:
+        raise ValueError(f"adapter(s) {variants} use a LoRA variant (e.g. DoRA): ΔW is not s·B·A")
+    names = [a for a in layer.active_adapters if a in layer.lora_A]
+    if not names:
+        raise ValueError("this LoRA layer has no active adapter")
     return names
+
+
+def delta_weight(layer: LoraLayer) -> torch.Tensor:
+    """The dense update of a peft LoRA layer (out × in): Σ over its plain active adapters of s·B·A, through
+    peft's `get_delta_weight` (differentiable in A and B)."""
+    deltas = [layer.get_delta_weight(a) for a in plain_adapters(layer)]
+    return deltas[0] if len(deltas) == 1 else torch.stack(deltas).sum(0)
+
+
+def _inside_adapters(model: nn.Module) -> set[str]:
+    """Names of modules that belong to an adapter (its base layer, its A/B/router layers)."""
+    types = _peft_layer_types()
+    wrappers = (types[1], MergeableAdapter) if types else (MergeableAdapter,)
+    inside = set()
+    for n, m in model.named_modules():
+        if isinstance(m, wrappers):
+            inside.update(f"{n}.{c}" if n else c for c, _ in m.named_modules() if c)
+    return inside
+
+
+def _mha_children(model: nn.Module, names: list[str]) -> list[str]:
+    mha = {n for n, m in model.named_modules() if isinstance(m, nn.MultiheadAttention)}
+    return [n for n in names if n.rpartition(".")[0] in mha]
+
+
+def linear_targets(model: nn.Module, patterns: list[str]) -> list[str]:
+    """Names of the `nn.Linear` modules (outside existing adapters) matched by `patterns`.
+
+    Errors: a pattern that matches none (named), or a match inside `nn.MultiheadAttention`.
+    """
+    inside = _inside_adapters(model)
+    linears = [n for n, m in model.named_modules() if isinstance(m, nn.Linear) and n not in inside]
+    dead = module_patterns.dead_patterns(linears, patterns)
+    if dead:
+        raise ValueError(f"target pattern(s) match no nn.Linear module: {module_patterns.describe(dead)}")
+    names = [n for n in linears if module_patterns.matches_any(n, patterns)]
+    bad = _mha_children(model, names)
+    if bad:
+        raise ValueError(
+            f"{bad} belong to nn.MultiheadAttention, which reads their weight without calling them: "
+            "an adapter there would never act"
+        )
+    return names
+
+
+def _peft_targets(model: nn.Module, patterns: list[str], names: list[str]) -> str:
+    """peft's `target_modules` for `names`: the patterns' regex if it selects exactly them, else the names."""
+    regex = module_patterns.to_peft_regex(patterns)
+    compiled = re.compile(regex)
+    hits = [n for n, _ in model.named_modules() if compiled.fullmatch(n)]
+    return regex if hits == names else module_patterns.exact_regex(names)
+
+
+def _check_peft_config(model: nn.Module) -> None:
+    config = getattr(model, "config", None)
+    if config is None or hasattr(config, "to_dict") or isinstance(config, dict):
+        return
+    if not dataclasses.is_dataclass(config):
+        raise TypeError(
+            f"peft reads model.config as a dict; {type(config).__name__} has no to_dict() "
+            "(give it one returning {'model_type': ..., **fields})"
+        )
 
 
 def _replace(model: nn.Module, name: str, new: nn.Module) -> None:
@@ -139,83 +199,115 @@ def _replace(model: nn.Module, name: str, new: nn.Module) -> None:
     setattr(model.get_submodule(parent_name) if parent_name else model, child, new)
 
 
-def wrap_linears(model: nn.Module, names: list[str], factory: Callable[[nn.Linear], nn.Module]) -> list[str]:
-    """Replace the named linear layers by `factory(layer)` and freeze everything but the adapters."""
-    for p in model.parameters():
-        p.requires_grad_(False)
-    for n in names:
-        _replace(model, n, factory(model.get_submodule(n)))
-    return names
+def _keep_off_fused_paths(model: nn.Module) -> None:
+    """A no-op pre-hook on adapted layers inside nn.TransformerEncoderLayer disables its fused path."""
+    layers = set(map(id, adapter_modules(model).values()))
+    for m in model.modules():
+        if isinstance(m, nn.TransformerEncoderLayer):
+            for c in m.modules():
+                if id(c) in layers and not c._forward_pre_hooks:
+                    c.register_forward_pre_hook(lambda module, args: None)
+
+
+def _unwrap(model: nn.Module) -> None:
+    """Put every peft LoRA layer's base layer back in its place and drop peft's bookkeeping."""
+    for name, m in adapter_modules(model).items():
+        _replace(model, name, m.get_base_layer())
+    if hasattr(model, "peft_config"):
+        del model.peft_config
+
+
+@contextmanager
+def _undone_on_error(model: nn.Module) -> Iterator[None]:
+    """On an exception, remove injected peft layers and restore which parameters were trainable."""
+    flags = [(p, p.requires_grad) for p in model.parameters()]
+    try:
+        yield
+    except BaseException:
+        _unwrap(model)
+        for p, flag in flags:
+            p.requires_grad_(flag)
+        raise
+
+
+def _inject(model: nn.Module, config: peft.LoraConfig) -> list[str]:
+    """Inject peft's LoRA layers in place (everything else frozen); refuse what we cannot run.
+
+    Call inside `_undone_on_error`."""
+    import peft
+
+    _check_peft_config(model)
+    if adapter_modules(model) or _own_adapters(model) or hasattr(model, "peft_config"):
+        raise ValueError("the model already has adapters (merge or remove them first)")
+    peft.inject_adapter_in_model(config, model, adapter_name=ADAPTER_NAME)
+    layers = adapter_modules(model)
+    wrong = [
+        f"{n} ({type(m.get_base_layer()).__name__})"
+        for n, m in layers.items()
+        if not isinstance(m, peft.tuners.lora.Linear)
+    ]
+    bad = _mha_children(model, list(layers))
+    if wrong or bad:
+        raise ValueError(
+            f"only nn.Linear layers outside nn.MultiheadAttention can be adapted here; got {wrong + bad}"
+        )
+    _keep_off_fused_paths(model)
+    return list(layers)
 
 
 def apply_lora(model: nn.Module, config: LoraConfig) -> list[str]:
-    """Wrap the targeted linear layers in place; everything else is frozen (peft semantics)."""
-    names = find_targets(model, config.target_modules)
-    return wrap_linears(model, names, lambda lin: LoraLinear(lin, config))
-
-
-def adapter_modules(model: nn.Module) -> dict[str, LoraLinear]:
-    return {n: m for n, m in model.named_modules() if isinstance(m, LoraLinear)}
-
-
-def trainable_parameter_count(model: nn.Module) -> int:
-    return sum(p.numel() for p in model.parameters() if p.requires_grad)
-
-
-def peft_config(config: LoraConfig, peft_type: str = "LORA", **extra) -> dict:
-    """peft's `adapter_config.json` fields for `config` (plus project fields in `extra`)."""
-    return {
-        "peft_type": peft_type,
-        "task_type": None,
-        "base_model_name_or_path": None,
-        "r": config.r,
-        "lora_alpha": config.alpha,
-        "lora_dropout": config.dropout,
-        "target_modules": list(config.target_modules),
-        "bias": "none",
-        "fan_in_fan_out": False,
-        "init_lora_weights": True if config.init == "kaiming" else "gaussian",
-        "modules_to_save": None,
-        "layers_to_transform": None,
-        "rank_pattern": {},
-        "alpha_pattern": {},
-        "use_rslora": False,
-        "use_dora": False,
-        "inference_mode": True,
-        **extra,
-    }
+    """Add peft LoRA layers to the targeted linear layers, in place; everything else is frozen."""
+    names = linear_targets(model, config.target_modules)
+    with _undone_on_error(model):
+        return _inject(model, config.to_peft(_peft_targets(model, config.target_modules, names)))
 
 
 def write_adapter(
-    model: nn.Module, out: str | os.PathLike, config_json: dict, overwrite: bool = False
+    tensors: dict[str, torch.Tensor], config_json: dict, out: str | os.PathLike, overwrite: bool = False
 ) -> Path:
-    """Write every adapter module's tensors and `config_json` atomically into directory `out`."""
-    mods = adapter_modules(model)
-    if not mods:
-        raise ValueError("the model has no adapter modules to save")
-    tensors = {
-        f"{PEFT_PREFIX}{n}.{k}": t.detach().to("cpu").contiguous()
-        for n, m in mods.items()
-        for k, t in m.adapter_tensors().items()
-    }
+    """Write adapter tensors (keys without the peft prefix) and a config atomically into directory `out`."""
+    tensors = {PEFT_PREFIX + k: t.detach().to("cpu").contiguous() for k, t in tensors.items()}
     with atomic_directory(out, overwrite) as tmp:
         save_file(tensors, tmp / ADAPTER_WEIGHTS, metadata={"format": "pt"})
-        (tmp / ADAPTER_CONFIG).write_text(json.dumps(config_json, indent=2))
+        (tmp / ADAPTER_CONFIG).write_text(json.dumps(config_json, indent=2, sort_keys=True))
     return Path(out)
 
 
+def peft_config_json(config: peft.LoraConfig) -> dict:
+    """`adapter_config.json` as peft writes it (`PeftConfig.save_pretrained`), as a dict."""
+    doc = config.to_dict()
+    doc.pop("runtime_config", None)  # peft does not save it either
+    return json.loads(json.dumps(doc, default=lambda v: sorted(v) if isinstance(v, set) else str(v)))
+
+
 def save_adapter(model: nn.Module, out: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Save LoRA adapters (peft layout). LoRA-SP models: use `lora_sp.save_adapter`."""
-    configs = {id(m.config): m.config for m in adapter_modules(model).values()}
-    if len(configs) != 1:
-        raise ValueError(f"expected the adapters of one LoraConfig, found {len(configs)}")
-    (config,) = configs.values()
-    if not isinstance(config, LoraConfig):
-        raise TypeError("these are not plain LoRA adapters; save them with their own module's save_adapter")
-    return write_adapter(model, out, peft_config(config), overwrite)
+    """Save the LoRA adapter in peft's layout. LoRA-SP models: use `lora_sp.save_adapter`."""
+    if not adapter_modules(model):
+        if _own_adapters(model):
+            raise TypeError(
+                "these are not peft LoRA adapters; save them with their own module's save_adapter"
+            )
+        raise ValueError("the model has no adapter modules to save")
+    configs = getattr(model, "peft_config", {})
+    if set(configs) != {ADAPTER_NAME}:
+        raise ValueError(f"expected one adapter named {ADAPTER_NAME!r}, found {sorted(configs)}")
+    import peft
+
+    config = copy.copy(configs[ADAPTER_NAME])
+    config.inference_mode = True
+    tensors = peft.get_peft_model_state_dict(model, adapter_name=ADAPTER_NAME)
+    with atomic_directory(out, overwrite) as tmp:
+        save_file(
+            {PEFT_PREFIX + k: t.detach().to("cpu").contiguous() for k, t in tensors.items()},
+            tmp / ADAPTER_WEIGHTS,
+            metadata={"format": "pt"},
+        )
+        config.save_pretrained(str(tmp))
+    return Path(out)
 
 
 def read_adapter(path: str | os.PathLike) -> tuple[dict, dict[str, torch.Tensor]]:
+    """An adapter directory's config (as a dict) and tensors (keys as stored)."""
     path = Path(path)
     for f in (ADAPTER_CONFIG, ADAPTER_WEIGHTS):
         if not (path / f).exists():
@@ -223,57 +315,66 @@ def read_adapter(path: str | os.PathLike) -> tuple[dict, dict[str, torch.Tensor]
     return json.loads((path / ADAPTER_CONFIG).read_text()), load_file(path / ADAPTER_WEIGHTS)
 
 
-def load_adapter_tensors(model: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
-    """Copy saved adapter tensors into the model's adapter modules; keys and shapes must match exactly."""
-    expected = {
-        f"{PEFT_PREFIX}{n}.{k}": t
-        for n, m in adapter_modules(model).items()
-        for k, t in m.adapter_tensors().items()
-    }
+def check_tensors(expected: dict[str, torch.Tensor], tensors: dict[str, torch.Tensor]) -> None:
+    """Saved adapter tensors must have exactly the expected keys and shapes; raise naming a few."""
     missing, extra = sorted(expected.keys() - tensors.keys()), sorted(tensors.keys() - expected.keys())
     if missing or extra:
         raise ValueError(f"adapter does not fit the model: missing {missing[:5]}, unexpected {extra[:5]}")
-    bad = [k for k, t in expected.items() if t.shape != tensors[k].shape]
+    bad = [
+        f"{k} {tuple(tensors[k].shape)} vs {tuple(t.shape)}"
+        for k, t in expected.items()
+        if t.shape != tensors[k].shape
+    ]
     if bad:
-        raise ValueError(f"adapter tensors with other shapes: {bad[:5]}")
-    with torch.no_grad():
-        for k, t in expected.items():
-            t.copy_(tensors[k])
+        raise ValueError(f"adapter tensors with other shapes (file vs model): {bad[:5]}")
 
 
-def config_from_peft(doc: dict) -> LoraConfig:
-    return LoraConfig(
-        target_modules=doc["target_modules"],
-        r=doc["r"],
-        alpha=doc["lora_alpha"],
-        dropout=doc.get("lora_dropout", 0.0),
-        init="gaussian" if doc.get("init_lora_weights") == "gaussian" else "kaiming",
+def _has_our_syntax(targets) -> bool:
+    return isinstance(targets, list) and any(
+        t.startswith(module_patterns.REGEX_PREFIX) or any(c in t for c in "*?[") for t in targets
     )
 
 
 def load_adapter(model: nn.Module, path: str | os.PathLike) -> list[str]:
-    """Apply the saved LoRA adapter to `model` (a model without adapters) and load its weights."""
+    """Apply a saved peft LoRA adapter to `model` (a model without adapters) through peft and load it.
+
+    The adapters are trainable afterwards (as after `apply_lora`). Older capvector adapters whose
+    `target_modules` is a list of globs are read with this project's pattern syntax.
+    """
+    import peft
+
     doc, tensors = read_adapter(path)
-    if doc.get("peft_type") != "LORA":
-        raise ValueError(f"{path} holds a {doc.get('peft_type')} adapter; use its own module's load_adapter")
-    if doc.get("bias", "none") != "none":
-        raise ValueError("only bias='none' adapters are supported")
-    names = apply_lora(model, config_from_peft(doc))
-    load_adapter_tensors(model, tensors)
+    kind = doc.get("peft_type")
+    if kind != "LORA":
+        hint = "; use capvector_core.lora_sp.load_adapter" if kind == "LORA_SP" else ""
+        raise ValueError(f"{path} holds a {kind} adapter; this loads peft LoRA (LORA) adapters only{hint}")
+    config = peft.LoraConfig.from_pretrained(str(path))
+    used = [f for f in _UNSUPPORTED if getattr(config, f, None)]
+    if used:
+        raise ValueError(f"{path}: peft LoRA option(s) {used} are not supported here")
+    config.inference_mode = False
+    if _has_our_syntax(doc.get("target_modules")):
+        patterns = doc["target_modules"]
+        config.target_modules = _peft_targets(model, patterns, linear_targets(model, patterns))
+    with _undone_on_error(model):
+        names = _inject(model, config)
+        state = {k.removeprefix(PEFT_PREFIX): t for k, t in tensors.items()}
+        check_tensors(peft.get_peft_model_state_dict(model, adapter_name=ADAPTER_NAME), state)
+        peft.set_peft_model_state_dict(model, state, adapter_name=ADAPTER_NAME)
     return names
 
 
 @torch.no_grad()
 def merge_lora(model: nn.Module) -> nn.Module:
-    """Replace every adapter by its base `nn.Linear` holding W₀ + ΔW (computed in float32), in place.
-
-    The result has the original module names and keys (so vectors can be taken from LoRA runs) and, like
-    a freshly built model, all parameters trainable.
-    """
+    """Fold every adapter into its base `nn.Linear` and unwrap it, in place (peft's merge for peft layers,
+    `merge_into_base` for LoRA-SP), so the model has its original module names and keys (vectors can be
+    taken from LoRA runs) and, like a freshly built model, all parameters trainable."""
     for name, m in adapter_modules(model).items():
-        base = m.base_layer  # reuse the original module (its class, e.g. MHA's out_proj, is kept)
-        base.weight.copy_((base.weight.float() + m.delta_weight().float()).to(base.weight.dtype))
-        _replace(model, name, base)
+        m.merge()
+        _replace(model, name, m.get_base_layer())
+    for name, m in _own_adapters(model).items():
+        _replace(model, name, m.merge_into_base())
+    _unwrap(model)
     for p in model.parameters():
         p.requires_grad_(True)
     return model

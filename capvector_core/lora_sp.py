@@ -16,16 +16,23 @@ Per adapted linear layer (`shared/reference/papers.md` §2):
 Observability: every module keeps `rank_ema` (running mean of its active rank k during training) and,
 since the last `reset_stats()`, the sum of kept score vectors and of k over all tokens seen.
 
-Dense merge: ΔW(x) depends on x, so no single dense matrix reproduces the layer in general. `merge_lora`
-uses ΔW = s·U·diag(σ̄)·V with σ̄ the mean masked score vector over the tokens seen since `reset_stats()`
-(run `calibrate` over representative data first). When the router ignores the input (weight all zero,
-scores = activation(bias)), σ̄ is that constant vector and the merge is exact; otherwise it is the
-linear layer that matches the adapter's average update, an approximation.
+Dense merge: ΔW(x) depends on x, so no single dense matrix reproduces the layer in general.
+`lora.merge_lora` (through `LoraSPLinear.merge_into_base`) uses ΔW = s·U·diag(σ̄)·V with σ̄ the mean
+masked score vector over the tokens seen since `reset_stats()` (run `calibrate` over representative data
+first). When the router ignores the input (weight all zero, scores = activation(bias)), σ̄ is that
+constant vector and the merge is exact; otherwise it is the linear layer that matches the adapter's
+average update, an approximation.
 
-Saved layout: like LoRA (`adapter_model.safetensors` + `adapter_config.json`) with peft_type "LORA_SP"
-(a project type peft does not know), extra tensors `<module>.lora_router.weight/.bias` and
-`<module>.lora_stats.{score_sum,token_count,rank_sum}`, `r` = bank size, `rank_pattern` = each module's
-mean active rank (rounded up), and the exact means under `active_rank`.
+Saved layout: like LoRA (`adapter_model.safetensors` + `adapter_config.json` with peft's fields) with
+peft_type "LORA_SP" (a project type peft does not know), extra tensors `<module>.lora_router.weight/.bias`
+and `<module>.lora_stats.{score_sum,token_count,rank_sum}`, `r` = bank size, `target_modules` the peft regex
+of the patterns (older files: the pattern list), `rank_pattern` = each module's mean active rank (rounded
+up), and the exact means under `active_rank`.
+
+Why not a peft tuner: peft has no LoRA-SP, and its extension point for custom layers
+(`LoraConfig._register_custom_module`) is private and experimental, would still need this whole layer, and
+the result could not be loaded by a plain peft anyway. So the layer is ours (standalone, peft's attribute
+and key names), targets use the same `module_patterns` syntax as LoRA, and `lora.merge_lora` merges it.
 """
 
 from __future__ import annotations
@@ -41,15 +48,13 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from capvector_core import module_patterns
 from capvector_core.lora import (
-    LoraConfig,
-    LoraLinear,
-    adapter_modules,
-    find_targets,
-    load_adapter_tensors,
-    peft_config,
+    PEFT_PREFIX,
+    check_tensors,
+    linear_targets,
+    peft_config_json,
     read_adapter,
-    wrap_linears,
     write_adapter,
 )
 
@@ -87,20 +92,37 @@ def select_active(scores: torch.Tensor, eta: float) -> tuple[torch.Tensor, torch
     return mask, k
 
 
-class LoraSPLinear(LoraLinear):
-    """y = W₀x + b + s·U·(σ_k(x) ⊙ V·dropout(x)); see the module docstring."""
+class LoraSPLinear(nn.Module):
+    """y = W₀x + b + s·U·(σ_k(x) ⊙ V·dropout(x)); see the module docstring. W₀ and b frozen.
+
+    A wrapper of our own over `nn.Linear` (peft has no LoRA-SP), with peft's attribute names
+    (`base_layer`, `lora_A`, `lora_B`, `lora_dropout`) so the saved keys follow peft's layout.
+    """
 
     def __init__(self, base: nn.Linear, config: LoraSPConfig):
-        super().__init__(base, config, r=config.bank_size)
+        super().__init__()
+        r = config.bank_size
+        self.config = config
+        self.base_layer = base
+        self.scaling = config.alpha / r
         self.eta = config.eta
         self.momentum = config.rank_momentum
         self.activation = F.softplus if config.activation == "softplus" else F.relu
         kw = {"device": base.weight.device, "dtype": base.weight.dtype}
-        self.lora_router = nn.Linear(base.in_features, config.bank_size, bias=True, **kw)
+        # (the order of random draws is the one of earlier versions: same seed, same adapter)
+        self.lora_A = nn.Linear(base.in_features, r, bias=False, **kw)
+        self.lora_B = nn.Linear(r, base.out_features, bias=False, **kw)
+        self.lora_dropout = nn.Dropout(config.dropout) if config.dropout > 0 else nn.Identity()
+        if config.init == "kaiming":
+            nn.init.kaiming_uniform_(self.lora_A.weight, a=math.sqrt(5))
+        else:
+            nn.init.normal_(self.lora_A.weight, std=1.0 / r)
+        nn.init.zeros_(self.lora_B.weight)
+        self.lora_router = nn.Linear(base.in_features, r, bias=True, **kw)
+        for p in base.parameters():
+            p.requires_grad_(False)
         self.register_buffer("rank_ema", torch.tensor(-1.0), persistent=False)
-        self.register_buffer(
-            "score_sum", torch.zeros(config.bank_size, dtype=torch.float64), persistent=False
-        )
+        self.register_buffer("score_sum", torch.zeros(r, dtype=torch.float64), persistent=False)
         self.register_buffer("token_count", torch.tensor(0.0, dtype=torch.float64), persistent=False)
         self.register_buffer("rank_sum", torch.tensor(0.0, dtype=torch.float64), persistent=False)
         self.last_losses: dict[str, torch.Tensor] = {}
@@ -109,9 +131,21 @@ class LoraSPLinear(LoraLinear):
         self.register_forward_pre_hook(lambda module, args: None)
 
     @property
+    def in_features(self) -> int:
+        return self.base_layer.in_features
+
+    @property
+    def out_features(self) -> int:
+        return self.base_layer.out_features
+
+    @property
     def weight(self) -> torch.Tensor:
         """The frozen W₀ (ΔW depends on the input; fused paths that read `.weight` are kept off)."""
         return self.base_layer.weight
+
+    @property
+    def bias(self) -> torch.Tensor | None:
+        return self.base_layer.bias
 
     @property
     def input_independent(self) -> bool:
@@ -179,9 +213,18 @@ class LoraSPLinear(LoraLinear):
         sigma = self.merge_scores().to(self.lora_A.weight.dtype)
         return (self.lora_B.weight * sigma) @ self.lora_A.weight * self.scaling
 
+    @torch.no_grad()
+    def merge_into_base(self) -> nn.Linear:
+        """The base layer holding W₀ + ΔW (computed in float32), for `lora.merge_lora`."""
+        base = self.base_layer
+        base.weight.copy_((base.weight.float() + self.delta_weight().float()).to(base.weight.dtype))
+        return base
+
     def adapter_tensors(self) -> dict[str, torch.Tensor]:
+        """Tensors saved per module, keyed by the suffix after the module name (peft's naming)."""
         return {
-            **super().adapter_tensors(),
+            "lora_A.weight": self.lora_A.weight,
+            "lora_B.weight": self.lora_B.weight,
             "lora_router.weight": self.lora_router.weight,
             "lora_router.bias": self.lora_router.bias,
             "lora_stats.score_sum": self.score_sum,
@@ -192,12 +235,21 @@ class LoraSPLinear(LoraLinear):
 
 def apply_lora_sp(model: nn.Module, config: LoraSPConfig) -> list[str]:
     """Wrap the targeted linear layers (not those inside nn.MultiheadAttention); freeze everything else."""
-    names = find_targets(model, config.target_modules, forbid_in_mha=True)
-    return wrap_linears(model, names, lambda lin: LoraSPLinear(lin, config))
+    names = linear_targets(model, config.target_modules)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    for n in names:
+        parent, _, child = n.rpartition(".")
+        setattr(
+            model.get_submodule(parent) if parent else model,
+            child,
+            LoraSPLinear(model.get_submodule(n), config),
+        )
+    return names
 
 
 def sp_modules(model: nn.Module) -> dict[str, LoraSPLinear]:
-    return {n: m for n, m in adapter_modules(model).items() if isinstance(m, LoraSPLinear)}
+    return {n: m for n, m in model.named_modules() if isinstance(m, LoraSPLinear)}
 
 
 def lora_sp_loss(model: nn.Module) -> torch.Tensor:
@@ -235,30 +287,32 @@ def calibrate(
 
 
 def save_adapter(model: nn.Module, out: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Save in the peft layout with peft_type "LORA_SP"; rank_pattern = mean active rank per layer."""
+    """Save in peft's layout with peft_type "LORA_SP"; rank_pattern = mean active rank per layer."""
+    import peft  # lazily, as in `lora`: only for peft's LoRA config fields
+
     mods = sp_modules(model)
     if not mods:
         raise ValueError("the model has no LoRA-SP modules")
     config = next(iter(mods.values())).config
     means = active_ranks(model, since_reset=True) or active_ranks(model)
-    extra = {
-        "rank_pattern": {n: math.ceil(v) for n, v in means.items()},
-        "active_rank": means,
-        "lora_sp": config.model_dump(exclude={"target_modules", "alpha", "dropout"}),
-    }
-    doc = peft_config(config_as_lora(config), peft_type="LORA_SP", **extra)
-    return write_adapter(model, out, doc, overwrite)
-
-
-def config_as_lora(config: LoraSPConfig) -> LoraConfig:
-    """The LoRA view of a LoRA-SP config (r = bank size), for peft's config fields."""
-    return LoraConfig(
-        target_modules=config.target_modules,
-        r=config.bank_size,
-        alpha=config.alpha,
-        dropout=config.dropout,
-        init=config.init,
+    doc = peft_config_json(
+        peft.LoraConfig(
+            target_modules=module_patterns.to_peft_regex(config.target_modules),
+            r=config.bank_size,
+            lora_alpha=config.alpha,
+            lora_dropout=config.dropout,
+            init_lora_weights=True if config.init == "kaiming" else "gaussian",
+            rank_pattern={n: math.ceil(v) for n, v in means.items()},
+            inference_mode=True,
+        )
     )
+    doc.update(
+        peft_type="LORA_SP",
+        active_rank=means,
+        lora_sp=config.model_dump(exclude={"target_modules", "alpha", "dropout"}),
+    )
+    tensors = {f"{n}.{k}": t for n, m in mods.items() for k, t in m.adapter_tensors().items()}
+    return write_adapter(tensors, doc, out, overwrite)
 
 
 def load_adapter(model: nn.Module, path: str | os.PathLike) -> list[str]:
@@ -267,11 +321,19 @@ def load_adapter(model: nn.Module, path: str | os.PathLike) -> list[str]:
     if doc.get("peft_type") != "LORA_SP":
         raise ValueError(f"{path} holds a {doc.get('peft_type')} adapter, not LORA_SP")
     config = LoraSPConfig(
-        target_modules=doc["target_modules"],
+        target_modules=module_patterns.from_peft(doc["target_modules"]),
         alpha=doc["lora_alpha"],
         dropout=doc.get("lora_dropout", 0.0),
         **doc["lora_sp"],
     )
     names = apply_lora_sp(model, config)
-    load_adapter_tensors(model, tensors)
+    expected = {
+        f"{PEFT_PREFIX}{n}.{k}": t
+        for n, m in sp_modules(model).items()
+        for k, t in m.adapter_tensors().items()
+    }
+    check_tensors(expected, tensors)
+    with torch.no_grad():
+        for k, t in expected.items():
+            t.copy_(tensors[k])
     return names

@@ -5,13 +5,17 @@
 `OrthogonalRegularizer(model, gamma, meta, ...)` is an `nn.Module` called as `reg(model) -> scalar`
 (already weighted), which is what the trainer's `extra_losses` hook expects; any training loop can add it
 to its loss. γ (and θ_meta) are stored as buffers on the parameters' device and dtype; parameters
-outside the include/exclude filter, without a γ tensor, or frozen are skipped; the work is one fused
-expression per parameter tensor (no Python loop over elements).
+outside the include/exclude filter (`module_patterns` syntax, over γ's tensor names), without a γ tensor,
+or frozen are skipped; the work is one fused expression per parameter tensor (no Python loop over
+elements).
 
 Modes:
 - `dense` (full fine-tuning): Δ' = θ − θ_meta per parameter tensor.
-- `lora_exact`: Δ' is each adapter's dense update, ΔW = s·B·A (materialised per layer; for LoRA-SP the
+- `lora_exact`: Δ' is each adapter's dense update, ΔW = s·B·A (materialised per layer through peft's
+  `get_delta_weight`, so peft's scaling, rsLoRA and per-layer rank/alpha included; for LoRA-SP the
   merge-time update s·B·diag(σ̄)·A), compared with γ of that layer's weight (`<module>.weight`).
+  Adapters are peft's LoRA layers (`lora.apply_lora`) or LoRA-SP layers; LoRA variants whose update is not
+  s·B·A (DoRA) are refused.
 - `lora_a`: the cheaper form the paper describes for LoRA, on the A matrices only, independent of B.
   The sources do not say how a full-weight γ (out × in) meets A (r × in); this project defines it
   (inferred) as the entry-wise L1 norm of the projection of γ's rows onto A's rows:
@@ -33,9 +37,8 @@ from typing import Literal
 import torch
 from torch import nn
 
-from capvector_core.lora import adapter_modules
+from capvector_core import lora, lora_sp, module_patterns
 from capvector_core.safetensors_io import Checkpoint
-from capvector_core.vector_ops import select_names
 
 Tensors = Mapping[str, torch.Tensor] | str | os.PathLike
 
@@ -46,6 +49,23 @@ def _source(x: Tensors):
         return list(x), lambda n: x[n]
     ckpt = Checkpoint(x)
     return ckpt.keys(), ckpt.get
+
+
+def _adapters(model: nn.Module) -> dict[str, nn.Module]:
+    """peft LoRA layers and LoRA-SP layers, by module name."""
+    return {**lora.adapter_modules(model), **lora_sp.sp_modules(model)}
+
+
+def _delta(layer: nn.Module) -> torch.Tensor:
+    """ΔW of an adapter layer, differentiable in A and B (peft: `get_delta_weight`; LoRA-SP: its merge ΔW)."""
+    return layer.delta_weight() if isinstance(layer, lora_sp.LoraSPLinear) else lora.delta_weight(layer)
+
+
+def _a_matrices(layer: nn.Module) -> list[torch.Tensor]:
+    """The A matrices (r × in) the layer reads its input through (one per active peft adapter)."""
+    if isinstance(layer, lora_sp.LoraSPLinear):
+        return [layer.lora_A.weight]
+    return [layer.lora_A[a].weight for a in lora.plain_adapters(layer)]
 
 
 class OrthogonalRegularizer(nn.Module):
@@ -66,7 +86,7 @@ class OrthogonalRegularizer(nn.Module):
         self.mode = mode
         g_names, g_get = _source(gamma)
         if include or exclude:
-            g_names = select_names(g_names, include, exclude)
+            g_names = module_patterns.select(g_names, include, exclude, what="γ tensor")
         g_names = set(g_names)
         if mode == "dense":
             if meta is None:
@@ -80,8 +100,10 @@ class OrthogonalRegularizer(nn.Module):
             targets = {n: params[n] for n in self.names}
             sources = {n: (g_get(n), m_get(n)) for n in self.names}
         elif mode in ("lora_exact", "lora_a"):
-            mods = adapter_modules(model)
+            mods = _adapters(model)
             self.names = [n for n in mods if f"{n}.weight" in g_names]
+            for n in self.names:  # refuse what s·B·A does not describe (DoRA) now, not mid-training
+                _a_matrices(mods[n])
             targets = {n: mods[n].base_layer.weight for n in self.names}
             sources = {n: (g_get(f"{n}.weight"), None) for n in self.names}
         else:
@@ -113,7 +135,7 @@ class OrthogonalRegularizer(nn.Module):
                 params = dict(model.named_parameters())
                 found = [params.get(n) for n in self.names]
             else:
-                mods = adapter_modules(model)
+                mods = _adapters(model)
                 found = [mods.get(n) for n in self.names]
             if any(f is None for f in found):
                 raise ValueError("this model lacks parameters the regularizer was built for")
@@ -128,8 +150,8 @@ class OrthogonalRegularizer(nn.Module):
             if self.mode == "dense":
                 d = torch.sub(t, getattr(self, f"meta_{i}")).mul_(g)
             elif self.mode == "lora_exact":
-                d = t.delta_weight() * g
+                d = _delta(t) * g
             else:
-                d = g @ t.lora_A.weight.T
+                d = g @ torch.cat(_a_matrices(t)).T
             terms.append(torch.linalg.vector_norm(d, 1, dtype=torch.float32))
         return torch.stack(terms).sum() * self.weight

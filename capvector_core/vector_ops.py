@@ -11,18 +11,19 @@ safetensors checkpoint, including a sharded Hugging Face one. Conventions:
 - outputs carry metadata: `capvector.kind`, `capvector.formula`, `capvector.coefficients`,
   `capvector.inputs` (role -> path and sha256, hashed from the bytes read, in a helper thread),
   `capvector.include`/`capvector.exclude`, and for vectors `capvector.partial` and optionally
-  `capvector.base_sha256` (the θ_pt the vector is meant to be added to).
+  `capvector.base_sha256` (the θ_pt the vector is meant to be added to); a merge also keeps base's
+  metadata (its policy config: a merged policy loads like its base; see `merge`).
 
-Name filters: `include`/`exclude` are lists of patterns matched against whole tensor names; a pattern is a
-shell-style glob (`fnmatch.fnmatchcase`, where `*` also crosses dots: `backbone.*`), or, prefixed with
-`re:`, a Python regular expression that must match the whole name (`re:blocks\\.[0-3]\\..*`). A tensor is
-selected when it matches some include pattern (or there is none) and no exclude pattern. A pattern that
+Name filters: `include`/`exclude` are lists of patterns in the project's one syntax
+(`capvector_core.module_patterns`, shared with LoRA targets): a shell-style glob on the whole name (`*`
+also crosses dots: `backbone.*`) or on its trailing dotted components (`attn.*_proj.weight`), or, prefixed
+with `re:`, a Python regular expression that must match the whole name (`re:blocks\\.[0-3]\\..*`). A tensor
+is selected when it matches some include pattern (or there is none) and no exclude pattern. A pattern that
 matches no tensor at all, or a selection that is empty, is an error (it is almost always a typo).
 """
 
 from __future__ import annotations
 
-import fnmatch
 import hashlib
 import json
 import math
@@ -36,6 +37,7 @@ from typing import Literal
 import torch
 from pydantic import BaseModel
 
+from capvector_core import module_patterns
 from capvector_core.safetensors_io import (
     DEFAULT_MAX_SHARD_BYTES,
     Checkpoint,
@@ -48,36 +50,23 @@ from capvector_core.safetensors_io import (
 PathLike = str | os.PathLike
 _PLACEHOLDER = "0" * 64
 CHUNK_BYTES = 4 << 20  # tensors are processed in pieces of this size: memory does not grow with them
+# Base metadata a merge carries (besides base's non-`capvector.` keys): the policy config, so a merged
+# policy checkpoint loads like its base. Equal to `capvector_core.policy.CONFIG_METADATA_KEY` (tested).
+CARRIED_KEYS = ("capvector.policy_config",)
 
 
 class VectorOpError(CheckpointError):
     """Inputs that cannot be combined (mismatch, non-finite values, wrong base, bad filter)."""
 
 
-def name_matches(name: str, pattern: str) -> bool:
-    if pattern.startswith("re:"):
-        return re.fullmatch(pattern[3:], name) is not None
-    return fnmatch.fnmatchcase(name, pattern)
-
-
 def select_names(
     names: Iterable[str], include: Sequence[str] | None = None, exclude: Sequence[str] | None = None
 ) -> list[str]:
-    """Apply include/exclude patterns (see module docstring); errors on patterns that match nothing."""
-    names = list(names)
-    for label, patterns in (("include", include), ("exclude", exclude)):
-        dead = [p for p in patterns or () if not any(name_matches(n, p) for n in names)]
-        if dead:
-            raise VectorOpError(f"{label} pattern(s) match no tensor: {_few(dead)}")
-    chosen = [
-        n
-        for n in names
-        if (not include or any(name_matches(n, p) for p in include))
-        and not any(name_matches(n, p) for p in exclude or ())
-    ]
-    if not chosen:
-        raise VectorOpError(f"the filter (include={include}, exclude={exclude}) selects no tensor")
-    return chosen
+    """Apply include/exclude patterns (`module_patterns` syntax); errors on patterns that match nothing."""
+    try:
+        return module_patterns.select(names, include, exclude, what="tensor")
+    except module_patterns.PatternError as e:
+        raise VectorOpError(str(e)) from None
 
 
 def _is_float(spec: TensorSpec) -> bool:
@@ -300,7 +289,9 @@ def merge(
     A vector must have exactly base's tensors (a `capvector.partial` vector: a subset), same shapes and
     dtypes. A vector whose metadata names another base (`capvector.base_sha256`) is refused unless
     `force=True`; base's hash is computed while streaming, so that check happens at the end, before the
-    output is renamed into place.
+    output is renamed into place. The output keeps base's metadata but for base's own provenance
+    (`capvector.*` keys other than `CARRIED_KEYS`, which would be false of the output), so a merged policy
+    checkpoint loads as its base does (`capvector_core.policy.load_policy`).
     """
     if not vectors:
         raise VectorOpError("merge needs at least one (vector, coefficient) pair")
@@ -350,7 +341,9 @@ def merge(
                     f"({digests['base'][:12]}…); pass force=True to merge anyway"
                 )
 
+    carried = {k: v for k, v in b.metadata.items() if not k.startswith("capvector.") or k in CARRIED_KEYS}
     meta = {
+        **carried,
         "capvector.kind": "merged",
         "capvector.formula": "base + sum_i alpha_i * vector_i",
         "capvector.coefficients": json.dumps([a for _, a in vecs]),

@@ -4,8 +4,10 @@ import json
 
 import pytest
 import torch
+from safetensors.torch import load_file
 from torch import nn
 
+from capvector_core import lora
 from capvector_core.lora import merge_lora, trainable_parameter_count
 from capvector_core.lora_sp import (
     LoraSPConfig,
@@ -141,7 +143,11 @@ def test_save_load_round_trip_with_rank_pattern(tmp_path):
     calibrate(model, [x])
     out = save_adapter(model, tmp_path / "sp")
     doc = json.loads((out / "adapter_config.json").read_text())
-    assert doc["peft_type"] == "LORA_SP" and doc["r"] == 8
+    assert doc["peft_type"] == "LORA_SP" and doc["r"] == 8 and doc["lora_alpha"] == 16
+    assert isinstance(doc["target_modules"], str)  # the peft regex of the patterns, as for LoRA
+    keys = set(load_file(out / "adapter_model.safetensors"))
+    assert "base_model.model.encoder.layers.0.linear1.lora_router.weight" in keys
+    assert "base_model.model.encoder.layers.1.linear1.lora_stats.score_sum" in keys and len(keys) == 14
     assert set(doc["rank_pattern"]) == {"encoder.layers.0.linear1", "encoder.layers.1.linear1"}
     assert all(1 <= v <= 8 for v in doc["rank_pattern"].values())
     fresh = TinyPolicy()
@@ -154,3 +160,28 @@ def test_save_load_round_trip_with_rank_pattern(tmp_path):
     torch.testing.assert_close(
         fresh.encoder.layers[0].linear1.merge_scores(), model.encoder.layers[0].linear1.merge_scores()
     )
+
+
+def test_older_file_with_pattern_list_loads_and_peft_savers_refuse(tmp_path):
+    torch.manual_seed(0)
+    model = TinyPolicy()
+    base_state = {k: v.clone() for k, v in model.state_dict().items()}
+    apply_lora_sp(model, LoraSPConfig(target_modules=["encoder.layers.*.linear1"], bank_size=4))
+    assert not lora.adapter_modules(model)  # LoRA-SP layers are ours, not peft's
+    with pytest.raises(TypeError, match="save_adapter"):
+        lora.save_adapter(model, tmp_path / "x")
+    x = torch.randn(2, 5, 10)
+    calibrate(model, [x])
+    out = save_adapter(model, tmp_path / "sp")
+    doc = json.loads((out / "adapter_config.json").read_text())
+    doc["target_modules"] = ["encoder.layers.*.linear1"]  # as files written before the peft regex
+    (out / "adapter_config.json").write_text(json.dumps(doc))
+    fresh = TinyPolicy()
+    fresh.load_state_dict(base_state)
+    assert load_adapter(fresh, out) == ["encoder.layers.0.linear1", "encoder.layers.1.linear1"]
+    with pytest.raises(ValueError, match="lora_sp.load_adapter"):
+        lora.load_adapter(TinyPolicy(), out)
+    model.eval()
+    fresh.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(fresh(x), model(x))

@@ -1,10 +1,13 @@
-"""The orthogonal regularizer's value and gradient against hand computations (dense, LoRA exact, A-only)."""
+"""The orthogonal regularizer vs hand computations (dense; exact and A-only on peft and LoRA-SP layers)."""
 
+import peft
 import pytest
 import torch
+from peft.tuners.lora import LoraLayer
 from torch import nn
 
-from capvector_core.lora import LoraConfig, apply_lora
+from capvector_core.lora import LoraConfig, apply_lora, delta_weight, load_adapter
+from capvector_core.lora_sp import LoraSPConfig, apply_lora_sp
 from capvector_core.orthogonal import OrthogonalRegularizer
 from capvector_core.safetensors_io import write_checkpoint
 
@@ -54,30 +57,91 @@ def test_dense_zero_at_start_and_skips_frozen():
         OrthogonalRegularizer(model, gamma)
 
 
+def _ab(m):
+    return m.lora_A["default"].weight, m.lora_B["default"].weight
+
+
 def test_lora_exact_and_a_only():
     model = _model()
     gamma = {k: torch.randn_like(v) for k, v in model.state_dict().items()}
     apply_lora(model, LoraConfig(target_modules=["0", "2"], r=3, alpha=6))
     with torch.no_grad():
         for m in (model[0], model[2]):
-            m.lora_B.weight.normal_()
+            _ab(m)[1].normal_()
     exact = OrthogonalRegularizer(model, gamma, mode="lora_exact", weight=0.5)
     a_only = OrthogonalRegularizer(model, gamma, mode="lora_a", weight=0.5)
     want_exact = sum(
-        (gamma[f"{i}.weight"] * (2.0 * m.lora_B.weight @ m.lora_A.weight)).abs().sum()
+        (gamma[f"{i}.weight"] * (2.0 * _ab(m)[1] @ _ab(m)[0])).abs().sum()
         for i, m in ((0, model[0]), (2, model[2]))
     )
-    want_a = sum(
-        (gamma[f"{i}.weight"] @ m.lora_A.weight.T).abs().sum() for i, m in ((0, model[0]), (2, model[2]))
-    )
-    torch.testing.assert_close(exact(model), 0.5 * want_exact.detach())
+    want_a = sum((gamma[f"{i}.weight"] @ _ab(m)[0].T).abs().sum() for i, m in ((0, model[0]), (2, model[2])))
+    loss_exact = exact(model)
+    torch.testing.assert_close(loss_exact, 0.5 * want_exact.detach())
+    loss_exact.backward()  # gradient reaches both A and B of peft's layers, as computed by hand
+    a, b = _ab(model[0])
+    g = gamma["0.weight"]
+    sign = torch.sign(g * (2.0 * b.detach() @ a.detach())) * g
+    torch.testing.assert_close(b.grad, 0.5 * 2.0 * sign @ a.detach().T)
+    torch.testing.assert_close(a.grad, 0.5 * 2.0 * b.detach().T @ sign)
+    model.zero_grad(set_to_none=True)
     loss = a_only(model)
     torch.testing.assert_close(loss, 0.5 * want_a.detach())
     loss.backward()
-    a = model[0].lora_A.weight
-    hand = 0.5 * torch.sign(gamma["0.weight"] @ a.detach().T).T @ gamma["0.weight"]
+    hand = 0.5 * torch.sign(g @ a.detach().T).T @ g
     torch.testing.assert_close(a.grad, hand)
-    assert model[0].lora_B.weight.grad is None  # the A-only form is independent of B
+    assert b.grad is None  # the A-only form is independent of B
+
+
+def test_lora_exact_uses_peft_scaling_of_a_peft_made_adapter(tmp_path):
+    """rsLoRA and alpha_pattern/rank_pattern from a peft adapter give each layer its own s."""
+    base = _model()
+    gamma = {k: torch.randn_like(v) for k, v in base.state_dict().items()}
+    state = {k: v.clone() for k, v in base.state_dict().items()}
+    config = peft.LoraConfig(
+        target_modules=["0", "2"],
+        r=4,
+        lora_alpha=8,
+        use_rslora=True,
+        rank_pattern={"2": 2},
+        alpha_pattern={"2": 3},
+    )
+    made = peft.get_peft_model(base, config)
+    with torch.no_grad():
+        for m in made.modules():
+            if isinstance(m, LoraLayer):
+                m.lora_B["default"].weight.normal_()
+    made.save_pretrained(tmp_path / "peft")
+    model = _model()
+    model.load_state_dict(state)
+    load_adapter(model, tmp_path / "peft")
+    reg = OrthogonalRegularizer(model, gamma, mode="lora_exact", weight=0.1)
+    scales = {0: 8 / 4**0.5, 2: 3 / 2**0.5}
+    want = sum(
+        (gamma[f"{i}.weight"] * (scales[i] * _ab(model[i])[1] @ _ab(model[i])[0])).abs().sum() for i in (0, 2)
+    )
+    torch.testing.assert_close(reg(model), 0.1 * want.detach())
+
+
+def test_lora_sp_layers():
+    """LoRA-SP: exact ΔW = s·B·diag(σ)·A (constant scores here) and the A-only form on its A."""
+    model = _model()
+    gamma = {k: torch.randn_like(v) for k, v in model.state_dict().items()}
+    apply_lora_sp(model, LoraSPConfig(target_modules=["0"], bank_size=4, alpha=8, eta=1.0))
+    m = model[0]
+    with torch.no_grad():
+        m.lora_router.weight.zero_()
+        m.lora_B.weight.normal_()
+    sigma = torch.nn.functional.softplus(m.lora_router.bias.detach())
+    want = (gamma["0.weight"] * (2.0 * (m.lora_B.weight * sigma) @ m.lora_A.weight)).abs().sum()
+    exact = OrthogonalRegularizer(model, gamma, mode="lora_exact", weight=0.5)
+    loss = exact(model)
+    torch.testing.assert_close(loss, 0.5 * want.detach())
+    loss.backward()
+    assert m.lora_A.weight.grad is not None and m.lora_B.weight.grad is not None
+    a_only = OrthogonalRegularizer(model, gamma, mode="lora_a", weight=0.5)
+    torch.testing.assert_close(
+        a_only(model), 0.5 * (gamma["0.weight"] @ m.lora_A.weight.T).abs().sum().detach()
+    )
 
 
 def test_a_only_zero_means_orthogonal_for_every_b():
@@ -86,10 +150,28 @@ def test_a_only_zero_means_orthogonal_for_every_b():
     apply_lora(model, LoraConfig(target_modules=["0"], r=2))
     g = torch.zeros(5, 6)
     g[:, :3] = torch.randn(5, 3)  # γ's rows live in the first three input coordinates
+    a, b = _ab(model[0])
     with torch.no_grad():
-        model[0].lora_A.weight.zero_()
-        model[0].lora_A.weight[:, 3:] = torch.randn(2, 3)  # A reads only the other coordinates
-        model[0].lora_B.weight.normal_()
+        a.zero_()
+        a[:, 3:] = torch.randn(2, 3)  # A reads only the other coordinates
+        b.normal_()
     reg = OrthogonalRegularizer(model, {"0.weight": g}, mode="lora_a")
     assert float(reg(model).detach()) == 0.0
-    assert abs(float((g * model[0].delta_weight().detach()).sum())) < 1e-6
+    assert abs(float((g * delta_weight(model[0]).detach()).sum())) < 1e-6
+
+
+def test_filters_use_the_pattern_syntax():
+    model = _model()
+    meta = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    gamma = {k: torch.randn_like(v) for k, v in meta.items()}
+    assert OrthogonalRegularizer(model, gamma, meta, include=["weight"]).names == ["0.weight", "2.weight"]
+    with pytest.raises(ValueError, match="'nothing'"):
+        OrthogonalRegularizer(model, gamma, meta, include=["weight", "nothing"])
+
+
+def test_dora_refused():
+    model = _model()
+    gamma = {k: torch.randn_like(v) for k, v in model.state_dict().items()}
+    peft.inject_adapter_in_model(peft.LoraConfig(target_modules=["0"], r=2, use_dora=True), model)
+    with pytest.raises(ValueError, match="DoRA"):
+        OrthogonalRegularizer(model, gamma, mode="lora_exact")

@@ -8,6 +8,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from capvector_core import vector_ops
+from capvector_core.policy import CONFIG_METADATA_KEY, build_policy, load_policy, save_policy
 from capvector_core.safetensors_io import Checkpoint, CheckpointError, write_checkpoint
 from capvector_core.vector_ops import VectorOpError, extract, merge, select_names, stats
 
@@ -144,6 +145,8 @@ def test_filters(tmp_path):
     assert select_names(names, include=["backbone.*"]) == names[:2]
     assert select_names(names, include=[r"re:backbone\.layers\.[1-9]\..*"]) == names[1:2]
     assert select_names(names, exclude=["*.proj.*"]) == names[:2]
+    assert select_names(names, include=["proj.weight"]) == names[2:]  # trailing components, as LoRA targets
+    assert select_names(names, exclude=["layers.1.*"]) == [names[0], names[2]]
     with pytest.raises(VectorOpError, match="match no tensor"):
         select_names(names, include=["encoder.*"])
     with pytest.raises(VectorOpError, match="selects no tensor"):
@@ -233,3 +236,25 @@ def test_stats_against_hand_computation(tmp_path):
     assert grp.cosine == pytest.approx(torch.nn.functional.cosine_similarity(gh, rh, 0).item())
     assert ("all", "*") in by and ("tensor", "buffers.position_ids") not in by
     assert all(isinstance(r.model_dump(), dict) for r in rows)
+
+
+def test_merged_policy_loads_as_a_policy(tmp_path):
+    """`vector merge` output keeps base's policy config: load_policy gives θ_pt + α·(θ_ao − θ_ft)."""
+    config = {"type": "l1_chunk", "d_model": 32, "n_layers": 2, "n_heads": 2, "chunk_size": 4}
+    paths = {}
+    for seed, role in enumerate(("pt", "ft", "ao")):
+        torch.manual_seed(seed)
+        paths[role] = save_policy(build_policy(config, device="cpu"), tmp_path / f"{role}.safetensors")
+    gamma = extract(paths["ao"], paths["ft"], tmp_path / "g.safetensors", base=paths["pt"])
+    merged = merge(paths["pt"], [(gamma, 1.5)], tmp_path / "merged.safetensors")
+    meta = Checkpoint(merged).metadata
+    assert vector_ops.CARRIED_KEYS == (CONFIG_METADATA_KEY,)
+    assert meta[CONFIG_METADATA_KEY] == Checkpoint(paths["pt"]).metadata[CONFIG_METADATA_KEY]
+    assert meta["capvector.kind"] == "merged"
+    policy = load_policy(merged, device="cpu")
+    pt, ft, ao = (load_file(str(paths[r])) for r in ("pt", "ft", "ao"))
+    state = policy.state_dict()
+    assert state.keys() == pt.keys()
+    for k, v in pt.items():
+        want = v + 1.5 * (ao[k] - ft[k]) if v.is_floating_point() else v
+        torch.testing.assert_close(state[k], want, rtol=1e-6, atol=1e-6)
