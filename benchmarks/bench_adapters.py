@@ -1,6 +1,6 @@
 """Benchmark (b): training-step cost of the orthogonal regularizer, LoRA and LoRA-SP on our policy.
 
-Model: `capvector_core.policy.VLAPolicy` in state mode, d_model 128, 4 layers, batch 64, AdamW, CPU.
+Model: the `l1_chunk` policy (`L1ChunkPolicy`) in state mode, d_model 128, 4 layers, batch 64, AdamW, CPU.
 Variants: full fine-tuning with and without the dense orthogonal regularizer (λ = 1e-4, γ on every
 parameter tensor), LoRA (r 16 on q/k/v/o and the MLP) alone and with the A-only and exact regularizers,
 and LoRA-SP (bank 128, η 0.9) with its spectral + router losses. Steps of every variant are timed in
@@ -25,28 +25,28 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from capvector_core.lora import LoraConfig, apply_lora, trainable_parameter_count  # noqa: E402
+from capvector_core.lora import LoraConfig, adapter_modules, apply_lora, trainable_parameter_count  # noqa: E402
 from capvector_core.lora_sp import LoraSPConfig, active_ranks, apply_lora_sp, lora_sp_loss  # noqa: E402
 from capvector_core.orthogonal import OrthogonalRegularizer  # noqa: E402
-from capvector_core.policy import PolicyConfig, VLAPolicy  # noqa: E402
+from capvector_core.policies import L1ChunkConfig, L1ChunkPolicy  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 BATCH = 64
 TARGETS = ["q_proj", "k_proj", "v_proj", "o_proj", "fc1", "fc2"]
 
 
-def make_batch(cfg: PolicyConfig, g: torch.Generator) -> dict[str, torch.Tensor]:
+def make_batch(cfg: L1ChunkConfig, g: torch.Generator) -> dict[str, torch.Tensor]:
     return {
         "tokens": torch.randint(1, cfg.vocab_size, (BATCH, cfg.max_instruction_tokens), generator=g),
         "state": torch.randn(BATCH, cfg.state_dim, generator=g),
         "proprio": torch.randn(BATCH, cfg.proprio_dim, generator=g),
-        "action": torch.randn(BATCH, cfg.chunk_size, cfg.action_dim, generator=g),
+        "actions": torch.randn(BATCH, cfg.chunk_size, cfg.action_dim, generator=g),
     }
 
 
-def build(variant: str, cfg: PolicyConfig, gamma: dict[str, torch.Tensor], meta: dict[str, torch.Tensor]):
+def build(variant: str, cfg: L1ChunkConfig, gamma: dict[str, torch.Tensor], meta: dict[str, torch.Tensor]):
     """A model, its optimizer and its extra losses for one variant."""
-    model = VLAPolicy(cfg)
+    model = L1ChunkPolicy(cfg)
     model.load_state_dict(meta)
     extra = {}
     if variant.startswith("lora_sp"):
@@ -55,9 +55,8 @@ def build(variant: str, cfg: PolicyConfig, gamma: dict[str, torch.Tensor], meta:
     elif variant.startswith("lora"):
         apply_lora(model, LoraConfig(target_modules=TARGETS, r=16, alpha=32))
         with torch.no_grad():  # non-zero B so the exact form does real work
-            for m in model.modules():
-                if hasattr(m, "lora_B"):
-                    m.lora_B.weight.normal_(std=1e-3)
+            for m in adapter_modules(model).values():
+                m.lora_B["default"].weight.normal_(std=1e-3)
     if variant == "full+orth":
         extra["orth"] = OrthogonalRegularizer(model, gamma, meta, weight=1e-4)
     elif variant == "lora+orth_a":
@@ -70,8 +69,7 @@ def build(variant: str, cfg: PolicyConfig, gamma: dict[str, torch.Tensor], meta:
 
 def step(model, opt, extra, batch) -> None:
     opt.zero_grad(set_to_none=True)
-    out = model(batch)
-    loss = model.action_loss(out["actions"], batch["action"])
+    loss = model.compute_loss(batch).loss
     for fn in extra.values():
         loss = loss + fn(model)
     loss.backward()
@@ -86,8 +84,8 @@ def main() -> None:
     load_before = os.getloadavg()[0]
     torch.manual_seed(0)
     torch.set_num_threads(2)
-    cfg = PolicyConfig(obs_mode="state", d_model=128, n_layers=4)
-    meta = {k: v.clone() for k, v in VLAPolicy(cfg).state_dict().items()}
+    cfg = L1ChunkConfig(obs_mode="state", d_model=128, n_layers=4)
+    meta = {k: v.clone() for k, v in L1ChunkPolicy(cfg).state_dict().items()}
     gamma = {k: 1e-3 * torch.randn_like(v) for k, v in meta.items() if v.is_floating_point()}
     variants = ["full", "full+orth", "lora", "lora+orth_a", "lora+orth_exact", "lora_sp"]
     g = torch.Generator().manual_seed(0)
@@ -126,7 +124,7 @@ def main() -> None:
             extra["orth"](model).backward()
         reg_ms.append((time.perf_counter() - t) / 20 * 1e3)
     result = {
-        "model": "VLAPolicy state mode, d_model 128, 4 layers, batch 64, AdamW, 2 CPU threads",
+        "model": "l1_chunk policy, state mode, d_model 128, 4 layers, batch 64, AdamW, 2 CPU threads",
         "steps_per_block": args.steps,
         "blocks": args.reps,
         "rows": rows,
