@@ -7,8 +7,7 @@ from capvector_core import lora_sp
 from capvector_core.evaluation import EvalConfig
 from capvector_core.lora import LoraConfig
 from capvector_core.lora_sp import LoraSPConfig
-from capvector_core.policies import L1ChunkConfig, L1ChunkPolicy
-from capvector_core.policy import load_policy, save_policy
+from capvector_core.policy import Policy, build_policy, load_policy, save_policy
 from tasks import evaluation
 from tasks.trained_policy import load_trained_policy, policy_form
 from tasks.training import run_train
@@ -18,14 +17,14 @@ from tests.test_trainer import TINY, make_dataset, quick
 TARGETS = ["mlp.fc*"]
 
 
-@pytest.fixture
-def trained(tmp_path):
+@pytest.fixture(params=["l1_chunk", "flow"])
+def trained(tmp_path, request):
     """A workspace with a dataset, an init checkpoint, and one LoRA-SP and one LoRA run from it."""
     workspace = Workspace(str(tmp_path / "home"))
     dataset = make_dataset()
     data_id = workspace.api.register_dir(dataset.save(tmp_path / "data"), kind="dataset", name="demos").id
     torch.manual_seed(0)
-    init = L1ChunkPolicy(L1ChunkConfig(**TINY))
+    init = build_policy({"type": request.param, **TINY}, "cpu")
     init_id = workspace.api.register_file(
         save_policy(init, tmp_path / "init.safetensors"), kind="checkpoint", name="init"
     ).id
@@ -40,7 +39,7 @@ def trained(tmp_path):
     }
 
 
-def _actions(policy: L1ChunkPolicy, dataset) -> torch.Tensor:
+def _actions(policy: Policy, dataset) -> torch.Tensor:
     obs = {key: dataset.tensors[key][:8].numpy() for key in ("state", "proprio")}
     return torch.as_tensor(policy.predict_action_chunk(obs, ["reach-v3"] * 8))
 
