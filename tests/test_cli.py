@@ -429,3 +429,33 @@ def test_sigterm_swallowed_by_a_library_still_stops_helpers_and_exits_143():
     assert not stat.exists() or stat.read_text().rsplit(")", 1)[1].split()[0] == "Z", (
         "helper outlived the CLI"
     )
+
+
+@pytest.mark.parametrize("policy_type", ["l1_chunk", "flow"])
+def test_a_policy_merged_on_the_cli_is_a_loadable_policy(tmp_path, policy_type):
+    """`vector merge` keeps the base's policy config: its output evaluates like any checkpoint."""
+    from capvector_core.policy import build_policy, save_policy
+    from tasks.trained_policy import load_trained_policy
+    from tasks.workspace import Workspace
+
+    home = tmp_path / "home"
+    spec = {"type": policy_type, "d_model": 16, "n_layers": 1, "n_heads": 2, "chunk_size": 2}
+    paths = {}
+    for seed, name in enumerate(["pt", "ft", "ao"]):
+        torch.manual_seed(seed)
+        paths[name] = save_policy(build_policy(spec, "cpu"), tmp_path / f"{name}.safetensors")
+    gamma, merged = tmp_path / "gamma.safetensors", tmp_path / "merged.safetensors"
+    invoke(home, "vector", "extract", str(paths["ao"]), str(paths["ft"]), "-o", str(gamma))
+    out = invoke(
+        home, "vector", "merge", str(paths["pt"]), "--vector", str(gamma), "--alpha", "1.1", "-o", str(merged)
+    )
+    merged_id = out.stdout.split("(artifact ")[1].split(")")[0]
+    policy, form = load_trained_policy(Workspace(str(home)), merged_id, device="cpu")
+    assert policy.type_name == policy_type and form.form == "dense"
+    expected = {
+        k: v + 1.1 * (load_file(str(paths["ao"]))[k] - load_file(str(paths["ft"]))[k])
+        for k, v in load_file(str(paths["pt"])).items()
+        if v.is_floating_point()
+    }
+    for k, v in expected.items():
+        torch.testing.assert_close(policy.state_dict()[k], v)
