@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from capvector_core.policies.token_backbone import Block, TokenBackboneConfig, TokenPolicy
+from capvector_core.policies.token_backbone import ActionHead, Block, TokenBackboneConfig, TokenPolicy
 from capvector_core.policy import Batch, PolicyOutput, register_policy
 
 
@@ -60,12 +60,6 @@ class ActionExpert(nn.Module):
         self.position = nn.Parameter(torch.randn(config.chunk_size, d) * 0.02)
         self.layers = nn.ModuleList(Block(config) for _ in range(config.n_layers))
         self.norm = nn.LayerNorm(d)
-
-
-class ActionHead(nn.Module):
-    def __init__(self, config: FlowConfig):
-        super().__init__()
-        self.proj = nn.Linear(config.d_model, config.action_dim)
 
 
 @register_policy("flow", FlowConfig)

@@ -12,20 +12,13 @@ from collections.abc import Collection
 
 import torch
 import torch.nn.functional as F
-from torch import nn
 
-from capvector_core.policies.token_backbone import TokenBackboneConfig, TokenPolicy
+from capvector_core.policies.token_backbone import ActionHead, TokenBackboneConfig, TokenPolicy
 from capvector_core.policy import Batch, PolicyOutput, register_policy
 
 
 class L1ChunkConfig(TokenBackboneConfig):
     type: str = "l1_chunk"
-
-
-class ActionHead(nn.Module):
-    def __init__(self, config: L1ChunkConfig):
-        super().__init__()
-        self.proj = nn.Linear(config.d_model, config.action_dim)
 
 
 @register_policy("l1_chunk", L1ChunkConfig)

@@ -274,6 +274,14 @@ class StateEncoder(nn.Module):
         return torch.stack([self.proj[name](state[:, a:b]) for name, (a, b) in self.groups.items()], dim=1)
 
 
+class ActionHead(nn.Module):
+    """Final token states -> one action (or velocity) per action token: `action_head.proj`."""
+
+    def __init__(self, config: TokenBackboneConfig):
+        super().__init__()
+        self.proj = nn.Linear(config.d_model, config.action_dim)
+
+
 class Embeddings(nn.Module):
     """Learned positions and token types for the prefix plus `extra` policy tokens (action queries)."""
 
