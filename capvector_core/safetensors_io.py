@@ -6,6 +6,9 @@ towards the process's resident memory), the second needs every tensor in memory 
 length, a JSON header `{name: {dtype, shape, data_offsets}, "__metadata__": {str: str}}`, then raw
 little-endian bytes. Reading copies one tensor at a time into an owned buffer (`readinto`); writing computes
 every header up front from names, shapes and dtypes, then streams tensor data in that order.
+Before any tensor byte is read, each header is checked as the safetensors library checks it (then opened by
+the library as the reference), and every file an index names must lie inside its folder: what a checkpoint
+id stands for is then exactly the bytes the store copied.
 
 Layouts understood by `Checkpoint`:
 - a `.safetensors` file;
@@ -21,6 +24,7 @@ import json
 import math
 import os
 import shutil
+import stat
 import struct
 import tempfile
 from collections.abc import Iterator, Mapping
@@ -28,11 +32,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from safetensors import SafetensorError, safe_open
 
 INDEX_NAME = "model.safetensors.index.json"
 SINGLE_NAME = "model.safetensors"
 DEFAULT_MAX_SHARD_BYTES = 2 << 30
-HEADER_LIMIT = 100 << 20  # the format's own upper bound on header size
+HEADER_LIMIT = 100_000_000  # the safetensors library's upper bound on header size
 
 DTYPES: dict[str, torch.dtype] = {
     "F64": torch.float64,
@@ -75,59 +80,171 @@ class TensorSpec:
         return DTYPES[self.dtype]
 
 
-def _read_header(path: Path) -> tuple[dict, int]:
-    """Parse one file's header and check the file is long enough for every tensor it declares."""
+def _regular_size(path: Path) -> int:
+    """Size of a regular file: a FIFO or device would block or never end, a directory cannot be read."""
     try:
-        size = path.stat().st_size
+        st = path.stat()
     except FileNotFoundError:
         raise CheckpointError(f"missing file: {path}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise CheckpointError(f"not a regular file: {path}")
+    return st.st_size
+
+
+def _read_header(path: Path) -> tuple[dict, int, int]:
+    """(header, offset where tensor data starts, file size); errors never quote the file's bytes."""
+    size = _regular_size(path)
     if size < 8:
         raise CheckpointError(f"truncated file (shorter than the 8-byte header length): {path}")
     with open(path, "rb") as f:
-        (n,) = struct.unpack("<Q", f.read(8))
-        if n > HEADER_LIMIT or 8 + n > size:
-            raise CheckpointError(
-                f"truncated or not a safetensors file (header of {n} bytes, file of {size}): {path}"
-            )
-        try:
-            header = json.loads(f.read(n))
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise CheckpointError(f"corrupt safetensors header in {path}: {e}") from None
-    data_start = 8 + n
-    ends = [v["data_offsets"][1] for k, v in header.items() if k != "__metadata__"]
-    need = data_start + max(ends, default=0)
-    if need > size:
-        raise CheckpointError(f"truncated file: {path} has {size} bytes, its header declares {need}")
-    return header, data_start
+        n = int.from_bytes(f.read(8), "little")
+        if n > HEADER_LIMIT:
+            raise CheckpointError(f"not a safetensors file (header length over {HEADER_LIMIT} bytes): {path}")
+        if 8 + n > size:
+            raise CheckpointError(f"truncated file: header length {n} exceeds file size {size}: {path}")
+        raw = f.read(n)
+    try:
+        header = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise CheckpointError(
+            f"corrupt safetensors header in {path}: not UTF-8 at byte {8 + e.start}"
+        ) from None
+    except (json.JSONDecodeError, RecursionError) as e:
+        raise CheckpointError(
+            f"corrupt safetensors header in {path}: {str(e) or 'nested too deeply'}"
+        ) from None
+    if not isinstance(header, dict):
+        raise CheckpointError(f"corrupt safetensors header in {path}: not a JSON object")
+    return header, 8 + n, size
+
+
+def _show(value: object, limit: int = 60) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _is_index(v: object) -> bool:
+    return type(v) is int and v >= 0  # not bool, not float: what the format's usize fields take
 
 
 def _specs_of_file(path: Path) -> tuple[dict[str, TensorSpec], dict[str, str]]:
-    header, start = _read_header(path)
-    meta = header.pop("__metadata__", None) or {}
-    specs = {}
+    """Tensor specs and metadata of one file, refused in one line unless the safetensors library loads it.
+
+    The checks name the tensor at fault and run before any tensor byte is read, so reads stay inside the
+    file and inside each tensor; the library then opens the file (headers only, ~1 ms) as the reference
+    for anything they do not cover (e.g. JSON that Python's parser takes and serde refuses).
+    """
+    header, start, size = _read_header(path)
+    meta = header.pop("__metadata__", None)
+    if meta is None:
+        meta = {}
+    elif not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
+        raise CheckpointError(
+            f"corrupt safetensors header in {path}: __metadata__ must map strings to strings"
+        )
+
+    def bad(name: str, problem: str) -> CheckpointError:
+        return CheckpointError(f"tensor {name!r} in {path}: {problem}")
+
+    spans = []
     for name, v in header.items():
-        if v["dtype"] not in DTYPES:
-            raise CheckpointError(f"unsupported dtype {v['dtype']} for tensor {name!r} in {path}")
-        b, e = v["data_offsets"]
-        specs[name] = TensorSpec(name, v["dtype"], tuple(v["shape"]), path, start + b, start + e)
+        if not isinstance(v, dict):
+            raise bad(name, f"its header entry is {_show(v)}, not an object")
+        for field in ("dtype", "shape", "data_offsets"):
+            if field not in v:
+                raise bad(name, f"its header entry has no {field!r}")
+        dtype, shape, offsets = v["dtype"], v["shape"], v["data_offsets"]
+        if not isinstance(dtype, str) or dtype not in DTYPES:
+            raise bad(name, f"unsupported dtype {_show(dtype)}")
+        if not isinstance(shape, list) or not all(_is_index(d) for d in shape):
+            raise bad(name, f"shape must be a list of non-negative integers, not {_show(shape)}")
+        if not isinstance(offsets, list) or len(offsets) != 2 or not all(_is_index(o) for o in offsets):
+            raise bad(name, f"data_offsets must be two non-negative integers, not {_show(offsets)}")
+        b, e = offsets
+        if e < b:
+            raise bad(name, f"data_offsets {_show(offsets)} end before they begin")
+        need = math.prod(shape) * DTYPES[dtype].itemsize
+        if e - b != need:
+            raise bad(
+                name, f"data_offsets {_show(offsets)} hold {e - b} bytes, {dtype} {_show(shape)} takes {need}"
+            )
+        spans.append((b, e, name))
+    spans.sort()  # the library's order: by (begin, end); tensors must tile the data from 0 without holes
+    end, prev = 0, None
+    for b, e, name in spans:
+        if b < end:
+            raise bad(name, f"data_offsets {_show([b, e])} overlap tensor {prev!r}, which ends at {end}")
+        if b > end:
+            after = (
+                f"after tensor {prev!r}, which ends at {end}"
+                if prev is not None
+                else "before it (data starts at 0)"
+            )
+            raise bad(name, f"data_offsets {_show([b, e])} leave a hole of {b - end} bytes {after}")
+        end, prev = e, name
+    if start + end > size:
+        e, name = next((e, n) for _, e, n in spans if start + e > size)
+        raise bad(name, f"truncated file: the tensor's data ends at byte {start + e}, the file has {size}")
+    if start + end < size:
+        raise CheckpointError(
+            f"{path} has {size - start - end} bytes after its last tensor (the format allows none)"
+        )
+    try:
+        with safe_open(path, "pt"):
+            pass
+    except SafetensorError as e:
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise CheckpointError(f"{path}: the safetensors library refuses it: {first[:200]}") from None
+    span = {name: (b, e) for b, e, name in spans}
+    specs = {  # header order, as before: for files we write it is also the storage order
+        name: TensorSpec(
+            name, v["dtype"], tuple(v["shape"]), path, start + span[name][0], start + span[name][1]
+        )
+        for name, v in header.items()
+    }
     return specs, meta
+
+
+def _inside(folder: Path, name: object, where: Path, what: str = "shard") -> Path:
+    """`folder / name`, refused unless its real path (symlinks resolved) lies inside the folder's real path.
+
+    Checked before anything is opened: an index may name any path, and a checkpoint's id must not depend on
+    files the store does not copy (nor may an error quote them).
+    """
+    if not isinstance(name, str) or not name or "\0" in name:
+        raise CheckpointError(f"{where}: {what} {name!r} is not a file name")
+    if os.path.isabs(name):
+        raise CheckpointError(f"{where}: {what} {name!r} is an absolute path, outside the checkpoint folder")
+    path = folder / name
+    try:
+        root, real = folder.resolve(strict=True), path.resolve()
+    except (OSError, RuntimeError):  # a symlink loop
+        raise CheckpointError(f"{where}: {what} {name!r} cannot be resolved (a symlink loop?)") from None
+    if real == root or not real.is_relative_to(root):
+        raise CheckpointError(
+            f"{where}: {what} {name!r} lies outside the checkpoint folder (after resolving '..' and symlinks)"
+        )
+    return path
 
 
 class Checkpoint:
     """A validated, lazily read safetensors checkpoint (file, sharded directory, or directory with one file).
 
-    Construction reads only headers: it fails on missing shards, truncated files and index entries that
-    disagree with the shards, so that no work starts on a checkpoint that cannot be read to the end.
+    Construction reads only headers: it fails on missing shards, shards outside the folder, headers the
+    safetensors library would refuse, truncated files and index entries that disagree with the shards, so
+    that no work starts on a checkpoint that cannot be read to the end and nothing outside it is ever read.
     """
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         if self.path.is_dir():
             index = self.path / INDEX_NAME
-            if index.exists():
-                self.files, self.specs, self.metadata = self._load_index(index)
-            elif (self.path / SINGLE_NAME).exists():
-                self.files = [self.path / SINGLE_NAME]
+            if os.path.lexists(index):
+                self.files, self.specs, self.metadata = self._load_index(
+                    _inside(self.path, INDEX_NAME, self.path, "index")
+                )
+            elif os.path.lexists(self.path / SINGLE_NAME):
+                self.files = [_inside(self.path, SINGLE_NAME, self.path)]
                 self.specs, self.metadata = _specs_of_file(self.files[0])
             else:
                 raise CheckpointError(f"{self.path} has neither {INDEX_NAME} nor {SINGLE_NAME}")
@@ -141,19 +258,33 @@ class Checkpoint:
         try:
             doc = json.loads(index.read_text())
             weight_map: dict[str, str] = doc["weight_map"]
-        except (json.JSONDecodeError, KeyError, TypeError) as e:
+        except UnicodeDecodeError:
+            raise CheckpointError(f"unreadable index {index}: not UTF-8") from None
+        except (json.JSONDecodeError, RecursionError, KeyError, TypeError) as e:
             raise CheckpointError(f"unreadable index {index}: {e!r}") from None
-        shards = list(dict.fromkeys(weight_map.values()))
-        missing = [s for s in shards if not (self.path / s).exists()]
+        if not isinstance(weight_map, dict) or not all(isinstance(v, str) for v in weight_map.values()):
+            raise CheckpointError(
+                f"unreadable index {index}: weight_map must map tensor names to shard names"
+            )
+        if not isinstance(doc.get("metadata") or {}, dict):
+            raise CheckpointError(f"unreadable index {index}: metadata is not an object")
+        paths = {s: _inside(self.path, s, index) for s in dict.fromkeys(weight_map.values())}
+        missing = [s for s, p in paths.items() if not p.exists()]
         if missing:
             raise CheckpointError(f"{index} names missing shard(s): {', '.join(missing)}")
-        by_shard = {s: _specs_of_file(self.path / s) for s in shards}
+        for s, p in paths.items():
+            if not p.is_file():
+                raise CheckpointError(f"{index}: shard {s!r} is not a regular file")
+        shards = list(dict.fromkeys(paths.values()))  # "x" and "./x" are one file
+        by_shard = {f: _specs_of_file(f) for f in shards}
         specs: dict[str, TensorSpec] = {}
-        for shard, (shard_specs, _) in by_shard.items():
-            for name, spec in shard_specs.items():
-                if weight_map.get(name) == shard:
-                    specs[name] = spec
-        absent = [k for k, s in weight_map.items() if k not in by_shard[s][0]]
+        absent = []
+        for name, shard in weight_map.items():
+            spec = by_shard[paths[shard]][0].get(name)
+            if spec is None:
+                absent.append(name)
+            else:
+                specs[name] = spec
         if absent:
             raise CheckpointError(
                 f"{len(absent)} tensor(s) in {index} are not in their shard: {_few(absent)}"
@@ -161,7 +292,7 @@ class Checkpoint:
         ordered = {k: specs[k] for k in sorted(specs, key=lambda k: (str(specs[k].file), specs[k].begin))}
         meta = dict(by_shard[shards[0]][1]) if shards else {}
         meta.update({k: str(v) for k, v in (doc.get("metadata") or {}).items() if k != "total_size"})
-        return [self.path / s for s in shards], ordered, meta
+        return shards, ordered, meta
 
     def keys(self) -> list[str]:
         """Tensor names in storage order (shard by shard, by offset): the order that reads sequentially."""
@@ -185,6 +316,8 @@ class Checkpoint:
         """Read bytes [start, stop) of one tensor into fresh, owned memory (no memory map stays behind)."""
         spec = self.specs[name]
         stop = spec.nbytes if stop is None else stop
+        if not 0 <= start <= stop <= spec.nbytes:
+            raise ValueError(f"bytes [{start}, {stop}) are not inside tensor {name!r} ({spec.nbytes} bytes)")
         buf = torch.empty(stop - start, dtype=torch.uint8)
         with open(spec.file, "rb", buffering=0) as f:
             f.seek(spec.begin + start)
@@ -224,7 +357,8 @@ class Checkpoint:
         hashes = {f: (file_hashes or {}).get(f) or file_sha256(f) for f in self.files}
         if len(self.files) == 1 and not (self.path / INDEX_NAME).exists():
             return hashes[self.files[0]]
-        doc = json.dumps({f.name: h for f, h in sorted(hashes.items())}, sort_keys=True)
+        # shards by their path inside the folder (the base name alone would merge x/a and y/a)
+        doc = json.dumps({f.relative_to(self.path).as_posix(): h for f, h in hashes.items()}, sort_keys=True)
         return hashlib.sha256(doc.encode()).hexdigest()
 
 
