@@ -3,7 +3,7 @@
 import hashlib
 import json
 from collections.abc import Iterable
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 CHUNK = 1 << 20
 
@@ -37,6 +37,13 @@ def hash_file(path: str) -> str:
     """sha256 hex of a local file (equal to `sha256sum` output)."""
     with open(path, "rb", buffering=0) as f:
         return hash_stream(f)[0]
+
+
+def canonical_json(obj: Any) -> bytes:
+    """One byte string per JSON value: sorted keys, no whitespace, ASCII escapes.
+
+    Applied to parsed JSON, so how a writer spelled a number or ordered its keys cannot change it."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()
 
 
 def manifest_bytes(entries: Iterable[tuple[str, int, str]]) -> bytes:

@@ -1,5 +1,7 @@
 """Pydantic records: the sidecar of every artifact and the JSON documents the catalogue indexes."""
 
+import hashlib
+import json
 import posixpath
 import re
 from datetime import UTC, datetime
@@ -8,8 +10,12 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from artifacts.errors import PathEscape
+from artifacts.hashing import canonical_json
 
-SIDECAR_FORMAT = 1
+# 2: the sidecar carries `metadata_sha256`, a seal over its metadata. 1: written before sealing
+# ("unsealed"): still read, reported by `capvector verify`.
+SIDECAR_FORMAT = 2
+SEAL_FIELD = "metadata_sha256"
 ID_RE = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -58,6 +64,7 @@ class ArtifactRecord(BaseModel):
     """
 
     format: int = SIDECAR_FORMAT
+    metadata_sha256: str | None = None
     id: str
     kind: str
     name: str
@@ -81,6 +88,76 @@ class ArtifactRecord(BaseModel):
     @property
     def size(self) -> int:
         return sum(f.size for f in self.files)
+
+    @property
+    def sealed(self) -> bool:
+        """Whether the sidecar carried a seal (it matched, or the record would not have been read)."""
+        return self.metadata_sha256 is not None
+
+
+class SealBroken(ValueError):
+    """A sidecar whose metadata no longer matches its seal, or whose seal was removed."""
+
+
+def metadata_digest(doc: dict[str, Any]) -> str:
+    """The seal of a sidecar: sha256 of its canonical JSON, without the seal itself and without the
+    files' `mtime_ns` (bookkeeping that reads refresh). Everything else is covered: kind, name,
+    layout, files (paths, sizes, hashes: what ties the id to the content), config, parents with their
+    roles and attrs, code and library versions, creation time and run ids.
+
+    Computed on the parsed JSON document, not the pydantic model, so it does not depend on how a
+    value round-trips through the model (defaults, coercions) or on whitespace and key order."""
+    body = {k: v for k, v in doc.items() if k != SEAL_FIELD}
+    files = body.get("files")
+    if isinstance(files, list):
+        body["files"] = [
+            {k: v for k, v in f.items() if k != "mtime_ns"} if isinstance(f, dict) else f for f in files
+        ]
+    return hashlib.sha256(canonical_json(body)).hexdigest()
+
+
+def seal_sidecar(record: ArtifactRecord) -> tuple[ArtifactRecord, bytes]:
+    """The record with its seal set, and the sidecar bytes to write (the sealed JSON document)."""
+    doc = json.loads(record.model_dump_json())
+    doc.pop(SEAL_FIELD, None)
+    doc["format"] = SIDECAR_FORMAT
+    doc[SEAL_FIELD] = metadata_digest(doc)
+    sealed = record.model_copy(update={"format": SIDECAR_FORMAT, "metadata_sha256": doc[SEAL_FIELD]})
+    return sealed, json.dumps(doc, indent=1, ensure_ascii=False).encode()
+
+
+def parse_sidecar(data: bytes | str) -> ArtifactRecord:
+    """Read a sidecar, checking its seal first: SealBroken when an edit broke it or removed it,
+    ValueError when it is not a sidecar at all. A format-1 sidecar (no seal) is read as unsealed."""
+    doc = json.loads(data)
+    if not isinstance(doc, dict):
+        raise ValueError("a sidecar is a JSON object")
+    seal, fmt = doc.get(SEAL_FIELD), doc.get("format", 1)
+    if seal is None:
+        if not isinstance(fmt, int) or fmt >= 2:
+            raise SealBroken(f"its seal {SEAL_FIELD} was removed (a format-{fmt} sidecar carries one)")
+    elif seal != metadata_digest(doc):
+        raise SealBroken(f"its metadata does not hash to its seal {SEAL_FIELD}={str(seal)[:12]}…")
+    return ArtifactRecord.model_validate(doc)
+
+
+class IntegrityVerdict(BaseModel):
+    """What `capvector verify` found for one artifact.
+
+    status: `ok` (sealed sidecar, every byte hashes to the id); `unsealed` (content ok, sidecar from
+    before sealing, so its metadata is unprotected); `corrupt` (content or sidecar fails; `detail`
+    says which); `missing` (no such artifact); `mismatch` (content and seal ok, but the catalogue
+    recorded other metadata at registration: a re-sealed edit, or a deliberate re-registration
+    that a catalogue rebuild has not seen yet)."""
+
+    id: str
+    status: Literal["ok", "unsealed", "corrupt", "missing", "mismatch"]
+    detail: str = ""
+    size: int = 0
+
+    @property
+    def bad(self) -> bool:
+        return self.status in ("corrupt", "missing", "mismatch")
 
 
 class RunRecord(BaseModel):

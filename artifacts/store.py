@@ -9,6 +9,18 @@ Layout under the root:
 An artifact is visible only once its sidecar exists; an object directory without one is garbage that
 `gc` removes. Ids: sha256 of the file bytes (so `sha256sum` agrees) or, for a directory, of its
 canonical manifest (see hashing.manifest_bytes).
+
+Integrity: nothing wrong is ever served under a trusted id.
+- Content: `path()` re-hashes every file of the artifact by default (size and mtime prove nothing:
+  bit rot, `cp -a`, rsync and restores keep them). Within one process a file this process hashed is
+  not hashed again while its inode, size, mtime and ctime are unchanged, for at most
+  VERIFIED_TTL_NS, and only once its times are RACY_WINDOW_NS old (a coarse clock could otherwise
+  give a change the same times); across processes every read re-hashes.
+- Parents: a registration re-checks each parent (sealed sidecar, content hash) before writing.
+- Metadata: the sidecar carries a seal, sha256 of its canonical metadata (records.metadata_digest);
+  an edited sidecar is refused naming the id. Format-1 sidecars (written before sealing) still load,
+  as unsealed. The seal catches accidental edits and tooling bugs, not a writer who recomputes it.
+- `audit()` is the full check behind `capvector verify`: no memo, no writes.
 """
 
 import errno
@@ -18,6 +30,7 @@ import os
 import posixpath
 import re
 import shutil
+import threading
 import time
 import uuid
 from collections.abc import Iterable, Iterator
@@ -38,13 +51,68 @@ from artifacts.errors import (
     PathEscape,
     UnknownParent,
 )
-from artifacts.hashing import copy_and_hash, hash_file, hash_stream, manifest_id
+from artifacts.hashing import copy_and_hash, hash_stream, manifest_id
 from artifacts.provenance import code_version
-from artifacts.records import ArtifactRecord, FileEntry, ParentRef, RunRecord, safe_relpath
+from artifacts.records import (
+    ArtifactRecord,
+    FileEntry,
+    IntegrityVerdict,
+    ParentRef,
+    RunRecord,
+    SealBroken,
+    parse_sidecar,
+    safe_relpath,
+    seal_sidecar,
+)
 
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 ParentLike = ParentRef | tuple[str, str] | tuple[str, str, dict[str, Any]]
+
+
+# In-process memo of verified local files: stat key -> (sha256, when it was hashed, time_ns).
+VERIFIED_TTL_NS = 300 * 10**9
+RACY_WINDOW_NS = 2 * 10**9
+_MEMO_MAX = 100_000
+_verified: dict[tuple[Any, ...], tuple[str, int]] = {}
+_verified_lock = threading.Lock()
+
+
+def clear_verified_memo() -> None:
+    """Forget which files this process verified (the next read of each re-hashes it)."""
+    with _verified_lock:
+        _verified.clear()
+
+
+def _stat_key(path: str, st: os.stat_result) -> tuple[Any, ...]:
+    # ctime cannot be set from user space: any write, utime, chmod or rename moves it.
+    return (path, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def _hash_local(path: str, expected: str, memo: bool = True) -> tuple[str, int]:
+    """(sha256, size) of a local file, read in full unless this process already hashed this very
+    file to `expected` (same inode, size, mtime and ctime) less than VERIFIED_TTL_NS ago.
+
+    Only a file whose times were over RACY_WINDOW_NS old when the read began is remembered: file
+    times come from a coarse clock, so a write just after a fresh change could leave them as they were.
+    """
+    st = os.stat(path)
+    key, now = _stat_key(path, st), time.time_ns()
+    if memo:
+        with _verified_lock:
+            hit = _verified.get(key)
+        if hit is not None and hit[0] == expected and now - hit[1] < VERIFIED_TTL_NS:
+            return expected, st.st_size
+    with open(path, "rb", buffering=0) as f:
+        digest, size = hash_stream(f)
+        after = os.fstat(f.fileno())
+    settled = now - max(after.st_mtime_ns, after.st_ctime_ns) > RACY_WINDOW_NS
+    if memo and digest == expected and settled and _stat_key(path, after) == key:
+        with _verified_lock:
+            if len(_verified) >= _MEMO_MAX:
+                _verified.clear()
+            _verified[key] = (digest, now)
+    return digest, size
 
 
 def _fsync_dir(path: str) -> None:
@@ -57,7 +125,8 @@ def _fsync_dir(path: str) -> None:
 
 
 class ArtifactStore:
-    """Write-once, verify-on-read storage of files and directories named by their sha256."""
+    """Write-once, verify-on-read storage of files and directories named by their sha256, with
+    sealed metadata."""
 
     def __init__(
         self, root: str | os.PathLike[str] | None = None, cache_dir: str | os.PathLike[str] | None = None
@@ -160,8 +229,26 @@ class ArtifactStore:
                 full = self.resolve(ref.id)
             except ArtifactNotFound:
                 raise UnknownParent(ref.id) from None
+            self._check_parent(full)
             out.append(ref.model_copy(update={"id": full}))
         return out
+
+    def _check_parent(self, artifact_id: str) -> None:
+        """A parent edge vouches for the parent: its sidecar must pass its seal and its content its
+        hash (memoized: a parent this process just read is not hashed again). On a remote store the
+        content is hashed when it is downloaded; here only its presence and sizes are checked."""
+        record = self._load_sidecar(artifact_id)
+        if self.local:
+            self._verify(record, verify=True)
+            return
+        obj = self.object_path(record.id)
+        for entry in record.files:
+            try:
+                size, _ = self._stat(posixpath.join(obj, entry.path))
+            except FileNotFoundError:
+                raise CorruptArtifact(record.id, f"{entry.path} is missing") from None
+            if size != entry.size:
+                raise CorruptArtifact(record.id, f"{entry.path} is {size} bytes, recorded {entry.size}")
 
     def _finish(
         self,
@@ -177,12 +264,12 @@ class ArtifactStore:
         flow_run_id: str | None,
         task_run_id: str | None,
     ) -> ArtifactRecord:
-        committed = self.fs.exists(self.sidecar_path(artifact_id))
-        if committed and not self._intact(artifact_id):
-            self._repair_with(staged, artifact_id, layout, entries)
+        existing = self._committed_record(artifact_id)
+        if existing is not None and not self._intact(existing):
+            self._repair_with(staged, existing, layout, entries)
         self._commit_object(staged, artifact_id)  # no-op when present; restores a deleted object otherwise
-        if committed:
-            return self.get(artifact_id)  # written before: content addressing makes this idempotent
+        if existing is not None:
+            return existing  # written before: content addressing makes this idempotent
         obj = self.object_path(artifact_id)
         files = []
         for rel, size, digest in sorted(entries):
@@ -190,21 +277,39 @@ class ArtifactStore:
             if st_size != size:
                 raise CorruptArtifact(artifact_id, f"{rel} is {st_size} bytes after commit, {size} written")
             files.append(FileEntry(path=rel, size=size, sha256=digest, mtime_ns=mtime))
-        record = ArtifactRecord(
-            id=artifact_id,
-            kind=kind,
-            name=name,
-            layout=layout,
-            files=files,
-            config=config or {},
-            parents=parents,
-            code_version=code_version(),
-            library_versions=library_versions or {},
-            flow_run_id=flow_run_id,
-            task_run_id=task_run_id,
+        record, sidecar = seal_sidecar(
+            ArtifactRecord(
+                id=artifact_id,
+                kind=kind,
+                name=name,
+                layout=layout,
+                files=files,
+                config=config or {},
+                parents=parents,
+                code_version=code_version(),
+                library_versions=library_versions or {},
+                flow_run_id=flow_run_id,
+                task_run_id=task_run_id,
+            )
         )
-        self._write_small(self.sidecar_path(artifact_id), record.model_dump_json(indent=1).encode())
+        self._write_small(self.sidecar_path(artifact_id), sidecar)
         return record
+
+    def _committed_record(self, artifact_id: str) -> ArtifactRecord | None:
+        """The record of an already committed artifact, or None.
+
+        A sidecar that is unreadable or fails its seal counts as none, and the object it described is
+        discarded: re-running the computation that produced the content is the one way to change an
+        artifact's metadata, and this registration is that re-run."""
+        if not self.fs.exists(self.sidecar_path(artifact_id)):
+            return None
+        try:
+            return self._load_sidecar(artifact_id)
+        except ArtifactNotFound:
+            return None
+        except CorruptArtifact:
+            self._discard(self.object_path(artifact_id))
+            return None
 
     def put_stream(
         self,
@@ -376,9 +481,15 @@ class ArtifactStore:
 
     def _load_sidecar(self, artifact_id: str) -> ArtifactRecord:
         try:
-            record = ArtifactRecord.model_validate_json(self.fs.cat_file(self.sidecar_path(artifact_id)))
+            record = parse_sidecar(self.fs.cat_file(self.sidecar_path(artifact_id)))
         except FileNotFoundError:
             raise ArtifactNotFound(f"no artifact {artifact_id}") from None
+        except SealBroken as e:
+            raise CorruptArtifact(
+                artifact_id,
+                f"sidecar metadata was edited after registration: {e} (its kind, name, config and "
+                "lineage are not trusted; re-run the computation that produced it to change them)",
+            ) from None
         except PathEscape as e:
             raise CorruptArtifact(artifact_id, f"sidecar names a path outside the artifact: {e}") from None
         except ValueError as e:
@@ -416,48 +527,109 @@ class ArtifactStore:
         return changed
 
     def _refresh_mtimes(self, record: ArtifactRecord, mtimes: dict[str, int | None]) -> None:
-        """Record new mtimes of files whose content was just re-verified, so they are not re-hashed again."""
-        if mtimes:
-            for entry in record.files:
-                entry.mtime_ns = mtimes.get(entry.path, entry.mtime_ns)
-            self._write_small(self.sidecar_path(record.id), record.model_dump_json(indent=1).encode())
+        """Record new mtimes of files whose content was just re-verified (so `verify=False` reads do
+        not re-hash them). The sidecar's JSON is patched in place: mtimes are outside the seal, and
+        everything the seal covers keeps the exact values it was sealed with."""
+        if not mtimes:
+            return
+        for entry in record.files:
+            entry.mtime_ns = mtimes.get(entry.path, entry.mtime_ns)
+        path = self.sidecar_path(record.id)
+        try:
+            doc = json.loads(self.fs.cat_file(path))
+        except (FileNotFoundError, ValueError):
+            return  # gone or replaced meanwhile: the next read sees whatever is there now
+        for entry in doc.get("files") or []:
+            if isinstance(entry, dict) and entry.get("path") in mtimes:
+                entry["mtime_ns"] = mtimes[entry["path"]]
+        self._write_small(path, json.dumps(doc, indent=1, ensure_ascii=False).encode())
 
-    def _repair_with(self, staged: str, artifact_id: str, layout: str, entries: list) -> None:
+    def _repair_with(self, staged: str, record: ArtifactRecord, layout: str, entries: list) -> None:
         """The same content again, over a damaged or missing copy: the fresh bytes replace it.
 
         A single file keeps the name its sidecar recorded (the id covers bytes, not names).
         """
-        record = self._load_sidecar(artifact_id)
         if layout == "file" and record.files and entries[0][0] != record.files[0].path:
             self.fs.mv(posixpath.join(staged, entries[0][0]), posixpath.join(staged, record.files[0].path))
-        self._discard(self.object_path(artifact_id))
+        self._discard(self.object_path(record.id))
 
-    def _intact(self, artifact_id: str) -> bool:
+    def _intact(self, record: ArtifactRecord) -> bool:
         try:
-            self._verify(self._load_sidecar(artifact_id), verify=True)
+            self._verify(record, verify=True, memo=False)
         except (CorruptArtifact, OSError):
             return False
         return True
 
-    def _verify(self, record: ArtifactRecord, verify: bool) -> None:
-        """Re-hash a file when asked, or whenever its size or mtime moved since it was recorded."""
+    def _verify(self, record: ArtifactRecord, verify: bool, memo: bool = True, refresh: bool = True) -> None:
+        """Re-hash every file when `verify` (see `_hash_local` for the in-process memo), else only
+        those whose size or mtime moved since they were recorded. A verified local directory must
+        also hold no file beyond its record: a consumer that lists it would read what no id covers."""
         changed = self._changed(record)
+        obj = self.object_path(record.id)
         for entry in record.files:
             if not verify and entry.path not in changed:
                 continue
-            with self.fs.open(posixpath.join(self.object_path(record.id), entry.path), "rb") as f:
-                digest, size = hash_stream(f)
+            full = posixpath.join(obj, entry.path)
+            if self.local:
+                digest, size = _hash_local(full, entry.sha256, memo)
+            else:
+                with self.fs.open(full, "rb") as f:
+                    digest, size = hash_stream(f)
             if size != entry.size or digest != entry.sha256:
                 raise CorruptArtifact(
                     record.id,
                     f"{entry.path}: {size} bytes, sha256 {digest[:12]}…, "
                     f"recorded {entry.size} bytes, sha256 {entry.sha256[:12]}…",
                 )
-        self._refresh_mtimes(record, changed)
+        if verify and self.local and record.layout == "dir":
+            extra = self._unrecorded_files(record)
+            if extra:
+                raise CorruptArtifact(record.id, f"files not in its record: {', '.join(extra[:5])}")
+        if refresh:
+            self._refresh_mtimes(record, changed)
 
-    def path(self, id_or_prefix: str, verify: bool = False, member: str | None = None) -> Path:
+    def _unrecorded_files(self, record: ArtifactRecord) -> list[str]:
+        """Files (or links, or anything else) inside a local directory artifact that its record lacks."""
+        obj, recorded, extra = self.object_path(record.id), {f.path for f in record.files}, []
+        for dirpath, dirnames, filenames in os.walk(obj):
+            for name in filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]:
+                rel = os.path.relpath(os.path.join(dirpath, name), obj).replace(os.sep, "/")
+                if rel not in recorded:
+                    extra.append(rel)
+        return sorted(extra)
+
+    def audit(self, id_or_prefix: str) -> IntegrityVerdict:
+        """Full check of one artifact (`capvector verify`): the sidecar against its seal and every
+        byte against the id, read from the store itself (not a cache, no memo), writing nothing."""
+        try:
+            artifact_id = self.resolve(id_or_prefix)
+        except (ArtifactNotFound, AmbiguousId, MalformedId) as e:
+            return IntegrityVerdict(id=str(id_or_prefix), status="missing", detail=str(e))
+        try:
+            record = self._load_sidecar(artifact_id)
+        except ArtifactNotFound as e:
+            return IntegrityVerdict(id=artifact_id, status="missing", detail=str(e))
+        except CorruptArtifact as e:
+            return IntegrityVerdict(id=artifact_id, status="corrupt", detail=str(e))
+        try:
+            self._verify(record, verify=True, memo=False, refresh=False)
+        except CorruptArtifact as e:
+            return IntegrityVerdict(id=artifact_id, status="corrupt", detail=str(e), size=record.size)
+        except OSError as e:
+            detail = f"artifact {artifact_id} is unreadable: {e}"
+            return IntegrityVerdict(id=artifact_id, status="corrupt", detail=detail, size=record.size)
+        if record.sealed:
+            return IntegrityVerdict(id=artifact_id, status="ok", size=record.size)
+        detail = "sidecar written before sealing: its metadata is not protected"
+        return IntegrityVerdict(id=artifact_id, status="unsealed", detail=detail, size=record.size)
+
+    def path(self, id_or_prefix: str, verify: bool = True, member: str | None = None) -> Path:
         """Local path of a verified artifact: the file, the directory, or one `member` of a directory.
 
+        `verify` (the default, and what every input of a registered computation must use): every file
+        of the artifact is re-hashed (memoized within this process, see `_hash_local`), so changed
+        bytes raise CorruptArtifact naming the id. `verify=False` only compares sizes and mtimes,
+        which bit rot and copies that keep times pass: for display, never for computing.
         Remote stores are materialised into the local cache first (downloads are always hashed).
         """
         record = self.get(id_or_prefix)
@@ -487,7 +659,7 @@ class ArtifactStore:
                 (final / f.path).is_file() and (final / f.path).stat().st_size == f.size for f in record.files
             )
             if intact and verify:
-                intact = all(hash_file(str(final / f.path)) == f.sha256 for f in record.files)
+                intact = all(_hash_local(str(final / f.path), f.sha256)[0] == f.sha256 for f in record.files)
             if intact:
                 return final
         shutil.rmtree(final, ignore_errors=True)

@@ -39,7 +39,14 @@ class Workspace:
         return True
 
     def path(self, artifact_id: str) -> Path:
-        return self.api.path(artifact_id)
+        """Local path of an artifact whose every byte was just checked against its id.
+
+        The one way steps and commands reach their inputs: bytes that changed while keeping size and
+        mtime (bit rot, `cp -a`, restores) raise CorruptArtifact naming the id, before anything is
+        computed from them or registered. Within one process an unchanged file is hashed once
+        (artifacts.store._hash_local); each new process re-hashes.
+        """
+        return self.api.path(artifact_id, verify=True)
 
     def run_dir(self, key: str) -> Path:
         """A step's working folder, kept across a crash so training can resume from its checkpoints."""

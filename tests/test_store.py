@@ -18,7 +18,7 @@ from artifacts.errors import (
 )
 from artifacts.hashing import hash_file, manifest_id
 from artifacts.provenance import code_version, installed_versions
-from artifacts.records import RunRecord
+from artifacts.records import SEAL_FIELD, RunRecord, metadata_digest
 from artifacts.store import ArtifactStore
 
 
@@ -41,6 +41,7 @@ def test_file_id_is_sha256_and_sidecar_describes_it(store, tmp_path):
     sidecar = json.loads(open(store.sidecar_path(rec.id)).read())
     assert sidecar["kind"] == "checkpoint" and sidecar["config"] == {"lr": 1e-3}
     assert sidecar["library_versions"] == {"torch": "2.13"} and sidecar["code_version"]
+    assert sidecar["format"] == 2 and sidecar[SEAL_FIELD] == metadata_digest(sidecar) == rec.metadata_sha256
     assert store.path(rec.id).read_bytes() == src.read_bytes()
     assert os.listdir(os.path.join(store.root, "tmp")) == []
 
@@ -100,10 +101,15 @@ def test_paths_cannot_escape(store, tmp_path):
         store.put_bytes(b"x", "report", "r", filename="../evil")
     with pytest.raises(PathEscape):
         store.put_run(RunRecord(flow_run_id="../../evil", flow_name="f"))
-    # A tampered sidecar pointing outside the artifact is reported as corruption, never followed.
+    # A tampered sidecar pointing outside the artifact is reported as corruption, never followed,
+    # whether its seal was left broken or recomputed.
     sidecar = store.sidecar_path(rec.id)
     doc = json.loads(open(sidecar).read())
     doc["files"][0]["path"] = "../../../../etc/passwd"
+    open(sidecar, "w").write(json.dumps(doc))
+    with pytest.raises(CorruptArtifact, match=rec.id):
+        store.path(rec.id)
+    doc[SEAL_FIELD] = metadata_digest(doc)
     open(sidecar, "w").write(json.dumps(doc))
     with pytest.raises(CorruptArtifact, match=rec.id):
         store.path(rec.id)
@@ -112,11 +118,13 @@ def test_paths_cannot_escape(store, tmp_path):
 def test_truncated_and_corrupted_content_is_detected(store, tmp_path):
     rec = store.put_file(write(tmp_path / "v.bin", b"0123456789" * 100), "vector", "v")
     obj = store.path(rec.id)
-    with open(obj, "r+b") as f:  # same size, one byte flipped, mtime restored: only a full verify sees it
+    with open(obj, "r+b") as f:  # same size, one byte flipped, mtime restored: only a hash sees it
         st = os.stat(obj)
         f.write(b"X")
     os.utime(obj, ns=(st.st_atime_ns, st.st_mtime_ns))
-    assert store.path(rec.id) == obj
+    assert store.path(rec.id, verify=False) == obj  # the size+mtime check alone is blind to it
+    with pytest.raises(CorruptArtifact, match=rec.id):
+        store.path(rec.id)  # reads verify by default
     with pytest.raises(CorruptArtifact, match=rec.id):
         store.path(rec.id, verify=True)
     with pytest.raises(CorruptArtifact, match=rec.id):
