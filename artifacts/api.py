@@ -1,24 +1,40 @@
 """The one Python entry point that tasks, flows and the CLI share: store + catalogue kept in step.
 
 Order of a registration: content into the store (temp + rename), sidecar (the commit point), then the
-catalogue row. A crash after the sidecar leaves the catalogue behind the store, which `sync` or
-`rebuild` repairs; never the reverse.
+catalogue row. The store is the truth, so the catalogue may fall behind it but never the reverse:
+- a registration whose row cannot be written (the catalogue stayed locked) still succeeds; the row
+  waits in this object and is written before its next read or write, or by the next open's catch-up;
+- a process killed between sidecar and row, or a deleted catalogue.duckdb, is caught up when the next
+  ArtifactsAPI opens (`Catalogue.catch_up`: a cheap check, then only the missing sidecars are read);
+- `capvector catalogue sync|rebuild|verify|gc` do the same on demand.
 """
 
+import logging
 import os
+import threading
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
+from pydantic import BaseModel
 
 from artifacts import home as home_mod
-from artifacts.catalogue import EVALUATION_KIND, VECTOR_STATS_KIND, Catalogue, RebuildReport, load_doc
-from artifacts.errors import ArtifactNotFound, UnknownParent
+from artifacts.catalogue import (
+    EVALUATION_KIND,
+    VECTOR_STATS_KIND,
+    Catalogue,
+    Doc,
+    LineageNode,
+    RebuildReport,
+    SyncReport,
+    VerifyReport,
+    load_doc,
+)
+from artifacts.errors import ArtifactError, ArtifactNotFound, CatalogueBusy, UnknownParent
 from artifacts.records import (
     ArtifactRecord,
     EvaluationDoc,
-    LineageRow,
     MergedVector,
     ParentRef,
     RunRecord,
@@ -28,9 +44,31 @@ from artifacts.records import (
 )
 from artifacts.store import ArtifactStore, ParentLike
 
+log = logging.getLogger(__name__)
+
+# Once a write met a locked catalogue, later writes of the same object wait this long, not max_wait_s:
+# their rows are safe in the store, and a step should not stall max_wait_s per registration.
+BUSY_WAIT_S = 1.0
+# The catch-up at open waits this long for the lock (another process's transaction takes milliseconds,
+# a parallel catch-up of a deleted catalogue a second or two), then leaves it to a later open.
+CATCH_UP_WAIT_S = 5.0
+
+
+class GcReport(BaseModel):
+    """What `gc` removed: store leftovers, catalogue rows of artifacts and runs no longer in the store,
+    and snapshot folders of killed readers."""
+
+    store: list[str]
+    rows: list[str]
+    runs: list[str]
+    snapshots: list[str]
+
 
 class ArtifactsAPI:
-    """Register artifacts and ask the catalogue about them; ids may be given as unique prefixes."""
+    """Register artifacts and ask the catalogue about them; ids may be given as unique prefixes.
+
+    `catch_up=False` opens without indexing what the store has and the catalogue lacks (for `verify`,
+    which reports the difference rather than repairing it)."""
 
     def __init__(
         self,
@@ -39,15 +77,86 @@ class ArtifactsAPI:
         catalogue_path: str | Path | None = None,
         cache_dir: str | Path | None = None,
         max_wait_s: float = 30.0,
+        catch_up: bool = True,
     ):
         self.home = str(home) if home is not None else home_mod.default_home()
         self.store = ArtifactStore(home_mod.store_url(self.home), cache_dir=cache_dir)
         self.catalogue = Catalogue(
             catalogue_path or home_mod.catalogue_path(self.home), max_wait_s=max_wait_s
         )
+        self._pending: dict[str, tuple[ArtifactRecord, Doc]] = {}
+        self._pending_runs: dict[str, RunRecord] = {}
+        self._busy = False
+        self._lock = threading.RLock()
+        if catch_up:
+            self.catch_up()
+
+    # ---------------------------------------------------------------- keeping up with the store
+    def catch_up(self) -> SyncReport | None:
+        """Index what the store has and the catalogue lacks, if the store changed since the last sync.
+
+        Never raises CatalogueBusy: a catalogue that stays locked is caught up by a later open."""
+        if not self.catalogue.ready:  # it stayed locked while this object opened it: do not wait again
+            self._busy = True
+            return None
+        try:
+            wait = min(BUSY_WAIT_S if self._busy else CATCH_UP_WAIT_S, self.catalogue.max_wait_s)
+            report = self.catalogue.catch_up(self.store, wait)
+        except CatalogueBusy as e:
+            log.warning("%s; not caught up with the store this time", e)
+            return None
+        except (ArtifactError, OSError, ValueError) as e:  # best effort: an open must not fail on it
+            log.warning("catalogue not caught up with the store (%s); see `capvector catalogue sync`", e)
+            return None
+        if report is not None and (report.artifacts or report.runs):
+            log.info(
+                "catalogue caught up with the store: %d artifacts, %d runs indexed",
+                report.artifacts,
+                report.runs,
+            )
+        return report
+
+    @property
+    def pending(self) -> int:
+        """Artifacts and runs committed to the store whose rows this object has not written yet."""
+        return len(self._pending) + len(self._pending_runs)
+
+    def _flush(self) -> None:
+        """Write the pending rows; a locked catalogue leaves them pending (their store commit stands)."""
+        with self._lock:
+            if not self.pending:
+                return
+            try:
+                self.catalogue.index(
+                    list(self._pending.values()),
+                    list(self._pending_runs.values()),
+                    max_wait_s=min(BUSY_WAIT_S, self.catalogue.max_wait_s) if self._busy else None,
+                )
+            except CatalogueBusy as e:
+                if not self._busy:
+                    log.warning(
+                        "%s; %d registration(s) are committed in the store and will be indexed once it is "
+                        "free (or by `capvector catalogue sync`)",
+                        e,
+                        self.pending,
+                    )
+                self._busy = True
+                return
+            except BaseException:
+                # Not a lock: rows that cannot be written would fail every later call too. Their store
+                # commit stands; `catalogue verify` reports them and a later open retries them.
+                self._pending.clear()
+                self._pending_runs.clear()
+                raise
+            self._busy = False
+            self._pending.clear()
+            self._pending_runs.clear()
 
     def _index(self, record: ArtifactRecord) -> ArtifactRecord:
-        self.catalogue.add(record, load_doc(self.store, record))
+        doc = load_doc(self.store, record)
+        with self._lock:
+            self._pending[record.id] = (record, doc)
+            self._flush()
         return record
 
     # ---------------------------------------------------------------- register
@@ -136,42 +245,77 @@ class ArtifactsAPI:
         )
 
     def record_run(self, run: RunRecord) -> None:
-        """Create or update a flow run (store first, so rebuild knows it too)."""
+        """Create or update a flow run (store first, so rebuild and sync know it too)."""
         self.store.put_run(run)
-        self.catalogue.put_run(run)
+        with self._lock:
+            self._pending_runs[run.flow_run_id] = run
+            self._flush()
 
     # ---------------------------------------------------------------- read
     def get(self, id_or_prefix: str) -> ArtifactRecord:
         return self.store.get(id_or_prefix)
 
-    def path(self, id_or_prefix: str, verify: bool = False, member: str | None = None) -> Path:
+    def path(self, id_or_prefix: str, verify: bool = True, member: str | None = None) -> Path:
+        """The store's `path` (every byte checked against the id unless `verify=False`)."""
         return self.store.path(id_or_prefix, verify=verify, member=member)
 
-    def ancestors(self, id_or_prefix: str, max_depth: int | None = None) -> list[LineageRow]:
+    # Reads write this object's pending rows first, so a registration is visible to its own process.
+    def ancestors(self, id_or_prefix: str, max_depth: int | None = None) -> list[LineageNode]:
+        self._flush()
         return self.catalogue.ancestors(self.store.resolve(id_or_prefix), max_depth)
 
-    def descendants(self, id_or_prefix: str, max_depth: int | None = None) -> list[LineageRow]:
+    def descendants(self, id_or_prefix: str, max_depth: int | None = None) -> list[LineageNode]:
+        self._flush()
         return self.catalogue.descendants(self.store.resolve(id_or_prefix), max_depth)
 
     def vectors_merged_into(self, id_or_prefix: str) -> list[MergedVector]:
+        self._flush()
         return self.catalogue.vectors_merged_into(self.store.resolve(id_or_prefix))
 
     def scores(self, id_or_prefix: str, fingerprint: str | None = None) -> list[ScoreRow]:
+        self._flush()
         return self.catalogue.scores(self.store.resolve(id_or_prefix), fingerprint)
 
     def query(self, sql: str, params: Any = None) -> pd.DataFrame:
-        """Read-only SQL over the catalogue tables."""
+        """Read-only SQL over the catalogue tables (on a snapshot: a long query holds no writer off)."""
+        self._flush()
         return self.catalogue.query(sql, params)
 
     # ---------------------------------------------------------------- maintenance
     def rebuild(self) -> RebuildReport:
-        return self.catalogue.rebuild(self.store)
+        """Recreate the catalogue from the store alone."""
+        with self._lock:
+            report = self.catalogue.rebuild(self.store)
+            self._pending.clear()  # the store holds them, so the rebuild indexed them
+            self._pending_runs.clear()
+            self._busy = False
+        return report
 
-    def sync(self) -> int:
+    def sync(self) -> SyncReport:
+        """Index what the store has and the catalogue lacks (a full listing, whatever the fingerprint)."""
+        self._flush()
         return self.catalogue.sync(self.store)
 
-    def gc(self, older_than_s: float = 3600.0) -> list[str]:
-        return self.store.gc(older_than_s)
+    def verify(self) -> VerifyReport:
+        """Rows without objects and objects without rows (artifacts and runs); repairs nothing."""
+        self._flush()
+        return self.catalogue.verify(self.store)
+
+    def gc(self, older_than_s: float = 3600.0) -> GcReport:
+        """The store's gc (staging leftovers, uncommitted objects older than `older_than_s`), plus the
+        catalogue rows of artifacts and runs no longer in the store, and stale snapshot folders."""
+        self._flush()
+        removed = self.store.gc(older_than_s)
+        report = self.catalogue.verify(self.store)
+        gone = [i for i in report.rows_without_objects if not self.store.exists(i)]
+        run_ids = set(report.rows_without_runs) - {r.flow_run_id for r in self.store.iter_runs()}
+        self.catalogue.remove_rows(gone, sorted(run_ids))
+        return GcReport(
+            store=removed,
+            rows=gone,
+            runs=sorted(run_ids),
+            snapshots=self.catalogue.remove_snapshots(older_than_s),
+        )
 
 
 def _parent_id(p: ParentLike) -> str:

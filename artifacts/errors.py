@@ -48,12 +48,16 @@ class SchemaTooNew(ArtifactError):
         self.found, self.known = found, known
         super().__init__(
             f"catalogue {path} has schema version {found}, this code knows up to version {known}; "
-            "upgrade capvector (or delete the file and run rebuild)"
+            "upgrade capvector, or delete the file and run `capvector catalogue rebuild` to recreate it "
+            "from the store"
         )
 
 
 class CatalogueBusy(ArtifactError):
-    """Another process held the DuckDB lock for longer than the bounded wait."""
+    """Another process held the DuckDB lock for longer than the bounded wait.
+
+    Reads report it; registrations do not (the sidecar is the commit point: the row is indexed on a
+    later write, open or `capvector catalogue sync`)."""
 
 
 class ReadOnlyViolation(ArtifactError, ValueError):

@@ -9,6 +9,8 @@ Three independent guards, because each alone has a gap:
 3. `enable_external_access=false` with the configuration locked, so no statement can touch other
    files or the network, and a SET inside the query cannot undo that.
 One thread: opening a catalogue costs about half as much without a worker pool to start.
+(`Catalogue.query` runs the statement on a private snapshot of the file, so a long query holds no
+writer off; whatever got through all three would change only that copy.)
 """
 
 import re

@@ -44,24 +44,39 @@ CREATE TABLE runs (
 );
 """
 
+# Which state of the store the catalogue last caught up with (see catalogue.store_fingerprint): one row
+# per store; `fingerprint` is NULL when the listing could not be trusted (remote stores: only the time).
+V2 = """
+CREATE TABLE store_sync (store VARCHAR PRIMARY KEY, fingerprint VARCHAR, synced_at TIMESTAMP NOT NULL);
+"""
+
 SCHEMA_VERSION_DDL = (
     "CREATE TABLE IF NOT EXISTS schema_version (version INTEGER PRIMARY KEY, applied_at TIMESTAMP)"
 )
 
 # Append (version, sql) pairs; never edit an applied one. Versions must increase by one.
-MIGRATIONS: list[tuple[int, str]] = [(1, V1)]
+MIGRATIONS: list[tuple[int, str]] = [(1, V1), (2, V2)]
 
 DATA_TABLES = ("artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs")
+# Rows derived from one artifact, by the column naming it: what `gc` removes for an artifact that is gone.
+ARTIFACT_COLUMNS = {
+    "artifacts": "id",
+    "edges": "child",
+    "vector_stats": "stats_id",
+    "eval_episodes": "evaluation_id",
+    "eval_tasks": "evaluation_id",
+}
 
 
 def current_version(con: duckdb.DuckDBPyConnection) -> int:
-    """Applied schema version; 0 for an empty database."""
-    exists = con.execute(
-        "SELECT count(*) FROM information_schema.tables WHERE table_name = 'schema_version'"
-    ).fetchone()[0]
-    if not exists:
+    """Applied schema version; 0 for an empty database.
+
+    Asked directly rather than through information_schema, whose first use on a fresh connection
+    costs more than the rest of opening the catalogue."""
+    try:
+        return con.execute("SELECT coalesce(max(version), 0) FROM schema_version").fetchone()[0]
+    except duckdb.CatalogException:
         return 0
-    return con.execute("SELECT coalesce(max(version), 0) FROM schema_version").fetchone()[0]
 
 
 def check_version(con: duckdb.DuckDBPyConnection, path: str, migrations: Sequence[tuple[int, str]]) -> int:

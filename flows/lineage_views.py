@@ -1,57 +1,103 @@
-"""Lineage rows rendered for people: an indented tree, or a Mermaid graph for Markdown viewers."""
+"""Lineage rows rendered for people: an indented tree, or a Mermaid graph for Markdown viewers.
+
+History is a DAG (θ_pt is a parent of θ_ft, θ_ao and θ_meta), so both views draw every edge among the
+rows: the rows' `links` (artifacts.catalogue.LineageNode); rows without them fall back to the hop each
+row was first reached by. The tree shows each node in full once, under the node it is nearest the root
+through, and every other edge into it as a one-line reference marked ↑ (shown above) or ↓ (below).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from artifacts.records import ArtifactRecord, LineageRow
+
+# Mermaid entity codes: `"` would end a quoted label, `|` an edge label, `#` starts an entity code, `<`
+# and `>` would be read as HTML, a backtick as a Markdown string.
+_MERMAID_ESCAPES = {"#": "#35;", '"': "#quot;", "|": "#124;", "<": "#lt;", ">": "#gt;", "`": "#96;"}
 
 
 def _label(row_id: str, kind: str | None, name: str | None) -> str:
     return f"{kind or '?'} {name or ''} [{row_id[:12]}]".strip()
 
 
-def as_tree(rows: list[LineageRow], root: ArtifactRecord) -> str:
-    """Each node under the node it was reached from (first path), with the edge role."""
-    children: dict[str, list[LineageRow]] = {}
+def mermaid_text(text: str) -> str:
+    """`text` made safe inside a quoted Mermaid label or an edge label (one line, entity codes)."""
+    out = "".join(_MERMAID_ESCAPES.get(c, c) for c in text)
+    return " ".join(out.splitlines())
+
+
+def lineage_edges(rows: Sequence[LineageRow], root_id: str) -> list[tuple[str, str, str, str]]:
+    """(near, far, role, parent) for every edge among the rows, once each: `far` is the row the edge
+    belongs to, `near` its other end (towards the root along the walk), `parent` the edge's parent
+    ("" for a fallback hop, whose direction the caller knows)."""
+    out, seen = [], set()
     for row in rows:
         if row.depth == 0:
             continue
-        children.setdefault(row.path[-2], []).append(row)
-    root_id = root.id
-    lines = [_label(root_id, root.kind, root.name)]
+        links = getattr(row, "links", None)
+        if links:
+            for parent, child, role in links:
+                key = (parent, child, role)
+                if key not in seen:
+                    seen.add(key)
+                    out.append((child if parent == row.id else parent, row.id, role, parent))
+        else:  # a row without links: the hop it was first reached by
+            near = row.path[-2] if len(row.path) > 1 else root_id
+            out.append((near, row.id, row.roles[-1], ""))
+    return out
+
+
+def as_tree(rows: list[LineageRow], root: ArtifactRecord) -> str:
+    """Each node in full under the node it was first reached from, every other edge as a reference."""
+    by_id = {r.id: r for r in rows}
+    kids: dict[str, list[tuple[str, str]]] = {}
+    for near, far, role, _ in lineage_edges(rows, root.id):
+        kids.setdefault(near, []).append((far, role))
+    for items in kids.values():
+        items.sort(
+            key=lambda k: (by_id[k[0]].depth, k[1], by_id[k[0]].kind or "", by_id[k[0]].name or "", k[0])
+        )
+
+    def home_of(row: LineageRow) -> str:
+        """The node a row is shown in full under: the hop of its first (shortest) path."""
+        return row.path[-2] if len(row.path) > 1 else root.id
+
+    lines = [_label(root.id, root.kind, root.name)]
+    shown = {root.id}
 
     def walk(node: str, indent: str) -> None:
-        kids = children.get(node, [])
-        for i, kid in enumerate(kids):
-            last = i == len(kids) - 1
-            lines.append(
-                f"{indent}{'└── ' if last else '├── '}({kid.roles[-1]}) {_label(kid.id, kid.kind, kid.name)}"
-            )
-            walk(kid.id, indent + ("    " if last else "│   "))
+        items = kids.get(node, [])
+        for i, (far, role) in enumerate(items):
+            last = i == len(items) - 1
+            row = by_id[far]
+            label = f"({role}) {_label(far, row.kind, row.name)}"
+            branch = "└── " if last else "├── "
+            if home_of(row) == node and far not in shown:
+                shown.add(far)
+                lines.append(f"{indent}{branch}{label}")
+                walk(far, indent + ("    " if last else "│   "))
+            else:
+                lines.append(f"{indent}{branch}{label} {'↑' if far in shown else '↓'}")
 
-    walk(root_id, "")
+    walk(root.id, "")
     return "\n".join(lines)
 
 
 def as_mermaid(rows: list[LineageRow], root: ArtifactRecord, ancestors: bool) -> str:
     """`graph BT` for ancestors (arrows point from parent to child), `graph TD` for descendants."""
     lines = ["graph " + ("BT" if ancestors else "TD")]
-    root_id = root.id
     names = {r.id: _label(r.id, r.kind, r.name) for r in rows}
-    names[root_id] = _label(root_id, root.kind, root.name)
-    seen = set()
-    for row in rows:
-        if row.depth == 0:
-            continue
-        near, far = row.path[-2], row.id
-        parent, child = (far, near) if ancestors else (near, far)
-        edge = (parent, child, row.roles[-1])
-        if edge in seen:
-            continue
-        seen.add(edge)
-        lines.append(
-            f'    n{parent[:12]}["{names.get(parent, parent[:12])}"] -->|{row.roles[-1]}| '
-            f'n{child[:12]}["{names.get(child, child[:12])}"]'
-        )
+    names[root.id] = _label(root.id, root.kind, root.name)
+
+    def node(artifact_id: str) -> str:
+        return f'n{artifact_id[:12]}["{mermaid_text(names.get(artifact_id, artifact_id[:12]))}"]'
+
+    for near, far, role, parent in lineage_edges(rows, root.id):
+        if not parent:  # fallback hop: parent by direction
+            parent = far if ancestors else near
+        child = near if parent == far else far
+        lines.append(f"    {node(parent)} -->|{mermaid_text(role)}| {node(child)}")
     if len(lines) == 1:
-        lines.append(f'    n{root_id[:12]}["{names[root_id]}"]')
+        lines.append(f"    {node(root.id)}")
     return "\n".join(lines)

@@ -120,7 +120,7 @@ def test_writer_killed_mid_artifact_leaves_nothing_visible(tmp_path):
     assert list(api.store.iter_ids()) == [before.id]
     assert api.query("SELECT id FROM artifacts")["id"].tolist() == [before.id]
     assert api.rebuild().artifacts == 1
-    leftovers = api.gc(older_than_s=0)
+    leftovers = api.gc(older_than_s=0).store
     assert leftovers and all(p.startswith(str(staging)) for p in leftovers)
     assert not any(staging.iterdir())
     assert api.path(before.id).exists()

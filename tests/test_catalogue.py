@@ -1,5 +1,6 @@
 """The DuckDB catalogue: lineage queries, scores, rebuild from the store, migrations, read-only SQL."""
 
+import re
 import shutil
 
 import duckdb
@@ -10,6 +11,7 @@ from artifacts.catalogue import Catalogue
 from artifacts.errors import MixedFingerprints, ReadOnlyViolation, SchemaTooNew, UnknownParent
 from artifacts.records import RunRecord
 from artifacts.schema import MIGRATIONS
+from flows.lineage_views import as_mermaid, as_tree
 
 TABLES = ["artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs"]
 
@@ -182,9 +184,9 @@ def test_sync_indexes_what_the_catalogue_missed(world):
         {"late": True}, "report", "written, then the process died", parents=[(ids["sft"], "data")]
     )
     assert rec.id not in api.query("SELECT id FROM artifacts")["id"].tolist()
-    assert api.sync() == 1
+    assert api.sync().artifacts == 1
     assert rec.id in {r.id for r in api.descendants(ids["sft"])}
-    assert api.sync() == 0
+    assert api.sync().artifacts == 0
 
 
 def test_evaluation_of_unknown_checkpoint_is_refused(world):
@@ -262,3 +264,102 @@ def test_forward_migration_and_newer_schema(tmp_path):
         Catalogue(path)
     with pytest.raises(SchemaTooNew):
         cat.schema_version()  # the default-code read path refuses it too
+
+
+# ---------------------------------------------------------------------------- lineage views
+TREE_LINE = re.compile(
+    r"^(?P<indent>(?:│   |    )*)(?:├── |└── )\((?P<role>[^)]*)\) .*?\[(?P<id>[0-9a-f]{12})\]"
+)
+MERMAID_EDGE = re.compile(
+    r'n(?P<a>[0-9a-f]{12})\["[^"]*"\] -->\|(?P<role>[^|]*)\| n(?P<b>[0-9a-f]{12})\["[^"]*"\]$'
+)
+
+
+def tree_edges(text: str, ancestors: bool) -> set[tuple[str, str, str]]:
+    """(parent, child, role) of every line of an indented tree, each line read under the line above it."""
+    lines = text.splitlines()
+    stack = [re.search(r"\[([0-9a-f]{12})\]$", lines[0]).group(1)]
+    edges = set()
+    for line in lines[1:]:
+        m = TREE_LINE.match(line)
+        assert m, line
+        level = len(m["indent"]) // 4
+        del stack[level + 1 :]
+        near, far = stack[level], m["id"]
+        edges.add((far, near, m["role"]) if ancestors else (near, far, m["role"]))
+        stack.append(far)
+    return edges
+
+
+def mermaid_edges(text: str) -> set[tuple[str, str, str]]:
+    lines = text.splitlines()
+    assert lines[0] in ("graph BT", "graph TD")
+    edges = set()
+    for line in lines[1:]:
+        m = MERMAID_EDGE.search(line.strip())
+        assert m, line
+        edges.add((m["a"], m["b"], m["role"]))
+    return edges
+
+
+def test_lineage_views_draw_every_edge_of_the_dag(world):
+    """History is a DAG: θ_pt reaches θ_meta directly (base) and through θ_ft, θ_ao and γ; every edge
+    is drawn, in the tree (a node repeated as a marked reference) and in Mermaid."""
+    api, ids = world
+    report = api.register_json(
+        {"report": 1},
+        "report",
+        "report",
+        parents=[(ids[k], "evaluation") for k in ("eval_sft", "eval_pt", "eval_pt_b")]
+        + [(ids["stats"], "stats")],
+    )
+    table = {
+        (p[:12], c[:12], r) for p, c, r in api.query("SELECT parent, child, role FROM edges").values.tolist()
+    }
+    cases = [
+        (api.get(report.id), True),  # every artifact is an ancestor of the report
+        (api.get(ids["demos"]), False),
+        (api.get(ids["pt"]), False),
+        (api.get(ids["eval_sft"]), True),
+        (api.get(ids["gamma"]), False),
+    ]
+    for root, ancestors in cases:
+        rows = api.ancestors(root.id) if ancestors else api.descendants(root.id)
+        nodes = {root.id[:12]} | {r.id[:12] for r in rows}
+        expected = {e for e in table if e[0] in nodes and e[1] in nodes}
+        tree = as_tree(rows, root)
+        assert tree_edges(tree, ancestors) == expected, tree
+        mermaid = as_mermaid(rows, root, ancestors)
+        assert mermaid_edges(mermaid) == expected, mermaid
+    everything = as_mermaid(api.ancestors(report.id), api.get(report.id), True)
+    assert mermaid_edges(everything) == table and len(table) == 17
+    tree = as_tree(api.ancestors(report.id), api.get(report.id))
+    assert "↑" in tree  # θ_pt is reached from several children: expanded once, referred to after
+
+
+def test_lineage_views_within_a_depth_limit(world):
+    api, ids = world
+    root = api.get(ids["eval_sft"])
+    rows = api.ancestors(root.id, max_depth=3)
+    nodes = {root.id} | {r.id for r in rows}
+    expected = {
+        (p[:12], c[:12], r)
+        for p, c, r in api.query("SELECT parent, child, role FROM edges").values.tolist()
+        if p in nodes and c in nodes
+    }
+    assert ("theta_pt" in as_tree(rows, root)) and tree_edges(as_tree(rows, root), True) == expected
+    assert mermaid_edges(as_mermaid(rows, root, True)) == expected
+
+
+def test_mermaid_escapes_names(world):
+    api, ids = world
+    odd = api.register_json(
+        {"odd": 1}, "checkpoint", 'say "hi" #1 <b>|x|</b>', parents=[(ids["pt"], 'in"it|x')]
+    )
+    text = as_mermaid(api.ancestors(odd.id, max_depth=1), api.get(odd.id), True)
+    edge = text.splitlines()[1]
+    assert edge.count('"') == 4 and "<b>" not in edge, edge
+    assert "#quot;hi#quot;" in edge and "#35;1" in edge and "#124;" in edge
+    assert mermaid_edges(text) == {(ids["pt"][:12], odd.id[:12], "in#quot;it#124;x")}
+    alone = as_mermaid([], api.get(odd.id), True)
+    assert alone.splitlines()[1].count('"') == 2
