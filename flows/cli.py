@@ -16,7 +16,9 @@ from rich.console import Console
 from rich.table import Table
 
 from artifacts.errors import ArtifactError
+from flows.catalogue_commands import catalogue_app
 from flows.lineage_views import as_mermaid, as_tree
+from flows.verify_command import verify
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help=__doc__)
 artifacts_app = typer.Typer(no_args_is_help=True, help="List and show artifacts.")
@@ -25,6 +27,8 @@ vector_app = typer.Typer(
 )
 app.add_typer(artifacts_app, name="artifacts")
 app.add_typer(vector_app, name="vector")
+app.add_typer(catalogue_app, name="catalogue")
+app.command("verify")(verify)
 console = Console()
 err = Console(stderr=True)
 
@@ -64,10 +68,14 @@ def _print_json(data: Any) -> None:
 
 
 def _preflight() -> None:
-    """Before any flow: a configured but unreachable Prefect server is an error, not a hang."""
+    """Before any flow: a configured but unreachable Prefect server is an error, not a hang; and an
+    embedded one (no server configured) exits with this process, even after `kill -9` (step workers
+    are bound to it by the flows' task runner)."""
     from flows.schedules import check_server_reachable
+    from tasks.prefect_task import make_embedded_servers_die_with_their_parent
 
     check_server_reachable()
+    make_embedded_servers_die_with_their_parent()
 
 
 def _runner(runner: str, workers: int):

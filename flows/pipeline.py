@@ -5,7 +5,9 @@
 
 Independent branches are submitted together and run concurrently on the task runner: a pool of
 processes, because steps seed torch's process-global RNG and must not share it, and because two
-training steps in two processes use both cores without contending for the GIL.
+training steps in two processes use both cores without contending for the GIL. Each worker is bound
+to the process that started it (tasks.prefect_task.bind_worker_to_parent): a killed CLI takes its
+workers, and their embedded API servers, along.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from flows.config import ARMS, PipelineConfig
 from flows.runs import publish_markdown, recorded_run
 from tasks.data import collect_demos_task
 from tasks.evaluation import evaluate_task
+from tasks.prefect_task import bind_worker_to_parent
 from tasks.reporting import report_task
 from tasks.training import train_task
 from tasks.vectors import extract_task, merge_task
@@ -90,7 +93,7 @@ def submit_arm(
 
 
 def step_runner(workers: int = 2) -> ProcessPoolTaskRunner:
-    return ProcessPoolTaskRunner(max_workers=workers)
+    return ProcessPoolTaskRunner(max_workers=workers, initializer=bind_worker_to_parent)
 
 
 def _submit_ood_report(home: str, config: PipelineConfig, checkpoints: dict[str, Any]) -> str | None:

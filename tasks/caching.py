@@ -1,17 +1,17 @@
-"""Content-addressed caching for pipeline steps, layered under Prefect's task cache.
+"""Content-addressed caching for pipeline steps: the one cache a step consults.
 
 A step's *content key* is the sha256 of its kind (the task name), the ids (content hashes) of its input
 artifacts, its validated config and the code version: never paths, never Python object ids.
 
-Two layers use it:
-- `cached_step` keeps an index content key -> artifact id in the home directory; a step whose
-  artifact is in the store and verifies is not recomputed, even when Prefect's cache is cold
-  (a killed flow, a deleted Prefect home).
-- `prefect_cache_key` is the Prefect `cache_key_fn`. It mixes the id of the verified artifact into
-  the key, or a fresh nonce when there is none, so that a Prefect cache hit can only ever return an
-  artifact that exists and verifies; a missing or corrupt one makes the step recompute. When a step
-  produces its artifact inside a Prefect task, its result is also written under the key the next
-  run will compute, so that run is a plain Prefect cache hit.
+`cached_step` keeps an index content key -> artifact id in the home directory; a step whose artifact
+is in the store and verifies is not recomputed (also after a killed flow or a deleted Prefect home),
+and a missing or corrupt one is recomputed. The index falls back to the catalogue (artifacts record
+their cache key), so finished work is never done twice.
+
+Prefect's own task cache is not used: its hits are read back from result records in
+`$PREFECT_HOME/storage`, deserialized with the serializer each record names (pickle by default), so a
+planted record would run its code. Steps record whether the content cache answered them
+(`step_outcomes`), and tasks.prefect_task shows those as `Cached` in Prefect.
 """
 
 from __future__ import annotations
@@ -20,13 +20,34 @@ import hashlib
 import json
 import os
 import tempfile
-import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
 from tasks.code_version import code_version
 from tasks.workspace import Workspace
+
+# What `cached_step` did, per call, inside a `step_outcomes()` block: "cached" or "produced".
+_outcomes: ContextVar[list[str] | None] = ContextVar("capvector_step_outcomes", default=None)
+
+
+@contextmanager
+def step_outcomes() -> Iterator[list[str]]:
+    """Collect the outcome of every `cached_step` call made inside the block (this context only)."""
+    outcomes: list[str] = []
+    token = _outcomes.set(outcomes)
+    try:
+        yield outcomes
+    finally:
+        _outcomes.reset(token)
+
+
+def _record(outcome: str) -> None:
+    outcomes = _outcomes.get()
+    if outcomes is not None:
+        outcomes.append(outcome)
 
 
 def content_key(kind: str, inputs: dict[str, str], config: dict[str, Any], module: str) -> str:
@@ -91,37 +112,9 @@ def cached_step(
     key = content_key(kind, inputs, config, produce.__module__)
     existing = lookup(workspace, key)
     if existing is not None:
+        _record("cached")
         return existing
     artifact_id = produce(key)
     remember(workspace, key, artifact_id)
-    _prime_prefect_cache(key, artifact_id)
+    _record("produced")
     return artifact_id
-
-
-def _prefect_key(content: str, artifact_id: str | None) -> str:
-    return hashlib.sha256(f"{content}:{artifact_id or uuid.uuid4().hex}".encode()).hexdigest()
-
-
-def _prime_prefect_cache(content: str, artifact_id: str) -> None:
-    """Inside a Prefect task run: store the result under the key a later run with this artifact uses."""
-    from prefect.context import TaskRunContext
-
-    context = TaskRunContext.get()
-    if context is not None and context.result_store is not None:
-        context.result_store.write(obj=artifact_id, key=_prefect_key(content, artifact_id))
-
-
-def prefect_cache_key(context: Any, parameters: dict[str, Any]) -> str:
-    """Prefect `cache_key_fn` for tasks with the signature `(home, step, inputs, config)`.
-
-    The content key uses the task's name, not the `step` label: two steps with the same inputs and
-    config are the same computation.
-    """
-    workspace = Workspace(parameters["home"])
-    key = content_key(
-        context.task.name,
-        parameters.get("inputs") or {},
-        parameters.get("config") or {},
-        context.task.fn.__module__,
-    )
-    return _prefect_key(key, lookup(workspace, key))

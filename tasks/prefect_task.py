@@ -1,25 +1,185 @@
-"""The one Prefect task decorator every pipeline step uses: content cache keys, persisted results."""
+"""How pipeline steps run under Prefect: the one task decorator, and the processes a run starts.
+
+**Results.** A step's result is an artifact id, and the content cache (tasks.caching) is the only
+cache. Prefect's own cache is off and nothing is persisted to its result store: Prefect reads the
+serializer named *inside* a stored result record (pickle by default, even for a record that names
+none), so any record in `$PREFECT_HOME/storage` under a key a step looks up would be unpickled, i.e.
+run as code. A step that its content cache answered returns `Completed(name="Cached")`, which is
+what Prefect's own cache hits look like in the UI.
+
+**Processes.** A `capvector run` starts step workers (Prefect's process pool) and Prefect's embedded
+API server (one per process that talks to the embedded API). None of them may outlive the CLI, even
+after `kill -9`, and nothing of a dead run may commit:
+- a worker asks the kernel for SIGKILL when the CLI dies (Linux, `PR_SET_PDEATHSIG`), so it cannot
+  run a line after that; a watchdog thread (any OS) exits it when its parent changes, and a step does
+  not start in a worker whose parent is gone (`RunAbandoned`);
+- an embedded API server is started under a small launcher whose watchdog thread exits it when the
+  process that started it is gone (no parent-death signal there: it fires when the *thread* that
+  started the child ends, and Prefect may start its server from a short-lived thread).
+"""
 
 from __future__ import annotations
 
+import functools
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
 from prefect import task
+from prefect.cache_policies import NO_CACHE
+from prefect.states import Completed
 
-from tasks.caching import prefect_cache_key
+from tasks.caching import step_outcomes
+
+WATCHDOG_PERIOD_S = 0.25
+PR_SET_PDEATHSIG = 1
+
+# The pid of the CLI this process works for, once it is a bound step worker.
+_bound_parent: int | None = None
+
+
+class RunAbandoned(RuntimeError):
+    """This worker's run is gone (its CLI died): it must not start or commit anything."""
 
 
 def pipeline_task(name: str, retries: int = 0) -> Callable[[Callable[..., Any]], Any]:
     """A Prefect task `(home, step, inputs, config) -> artifact id`, cached on content.
 
-    Results are artifact ids (strings): persisting them is cheap, and tensors never travel through
-    Prefect. The task-run name is the step label, so the UI reads like the recipe.
+    The task-run name is the step label, so the UI reads like the recipe; tensors never travel
+    through Prefect. A step whose artifact came from the content cache finishes as `Cached`.
     """
-    return task(
-        name=name,
-        cache_key_fn=prefect_cache_key,
-        persist_result=True,
-        task_run_name="{step}",
-        retries=retries,
-    )
+
+    def decorate(fn: Callable[..., str]) -> Any:
+        @functools.wraps(fn)
+        def run_step(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> Any:
+            refuse_if_abandoned(step)
+            with step_outcomes() as outcomes:
+                artifact_id = fn(home, step, inputs, config)
+            if outcomes and all(outcome == "cached" for outcome in outcomes):
+                return Completed(name="Cached", data=artifact_id, message=f"content cache: {artifact_id}")
+            return artifact_id
+
+        return task(
+            name=name,
+            cache_policy=NO_CACHE,
+            persist_result=False,
+            result_serializer="json",  # should results ever be persisted: JSON strings, not pickles
+            task_run_name="{step}",
+            retries=retries,
+        )(run_step)
+
+    return decorate
+
+
+# ---------------------------------------------------------------------------- step workers
+def bind_worker_to_parent() -> None:
+    """Initializer of each process-pool worker: die with the process that spawned it.
+
+    Runs first thing in the worker. The parent is multiprocessing's record of it (not getppid(),
+    which names init already if the CLI died before this line). The kernel sends the parent-death
+    signal when the *thread* that spawned the worker ends; Prefect's process pool spawns workers
+    from its resolver threads, which live until the pool has shut its workers down."""
+    import multiprocessing
+
+    global _bound_parent
+    parent = multiprocessing.parent_process()
+    if parent is None or parent.pid is None:
+        return
+    _set_parent_death_signal(signal.SIGKILL)
+    if os.getppid() != parent.pid:  # it died before the signal was armed
+        os._exit(1)
+    _bound_parent = parent.pid
+    _start_watchdog(parent.pid)
+    make_embedded_servers_die_with_their_parent()
+
+
+def refuse_if_abandoned(step: str) -> None:
+    """In a bound worker whose CLI is gone: raise instead of starting `step` (where no parent-death
+    signal exists, the watchdog ends such a worker within WATCHDOG_PERIOD_S)."""
+    if _bound_parent is not None and os.getppid() != _bound_parent:
+        raise RunAbandoned(f"step {step!r} not run: its parent process {_bound_parent} (the CLI) is gone")
+
+
+def _set_parent_death_signal(signum: int) -> None:
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signum), 0, 0, 0)
+    except (OSError, AttributeError):  # no prctl: the watchdog alone
+        pass
+
+
+def _start_watchdog(parent: int) -> None:
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(WATCHDOG_PERIOD_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="capvector-parent-watchdog", daemon=True).start()
+
+
+# ---------------------------------------------------------------------------- embedded API servers
+# Runs `python -m MODULE ARGS...` in this process after starting a watchdog on the parent whose pid
+# is argv[1] (the process that launched it). No imports beyond the standard library.
+_LAUNCHER = f"""\
+import os, runpy, sys, threading, time
+parent = int(sys.argv[1])
+if os.getppid() != parent:
+    os._exit(1)
+def watch():
+    while os.getppid() == parent:
+        time.sleep({WATCHDOG_PERIOD_S!r})
+    os._exit(1)
+threading.Thread(target=watch, name="capvector-parent-watchdog", daemon=True).start()
+if sys.argv[2] != "-m":
+    sys.exit("launcher: expected -m MODULE ...")
+module = sys.argv[3]
+sys.argv = [module, *sys.argv[4:]]
+runpy.run_module(module, run_name="__main__", alter_sys=True)
+"""
+
+
+def die_with_parent(argv: list[str]) -> list[str]:
+    """`[python, "-m", module, *args]` -> the same command, exiting when this process is gone."""
+    if len(argv) < 3 or argv[1] != "-m":
+        return list(argv)
+    return [argv[0], "-c", _LAUNCHER, str(os.getpid()), *argv[1:]]
+
+
+class _PopenDyingWithParent(subprocess.Popen):
+    def __init__(self, args: Any, *rest: Any, **kwargs: Any) -> None:
+        if isinstance(args, list | tuple) and all(isinstance(a, str) for a in args):
+            args = die_with_parent(list(args))
+        super().__init__(args, *rest, **kwargs)
+
+
+class _ServerSubprocess:
+    """The `subprocess` module as prefect.server.api.server sees it: its one Popen (the uvicorn
+    command of `SubprocessASGIServer`) goes through the launcher; everything else is unchanged."""
+
+    Popen = _PopenDyingWithParent
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(subprocess, name)
+
+
+def make_embedded_servers_die_with_their_parent() -> None:
+    """Prefect's embedded API server (a `python -m uvicorn` child, started the first time a process
+    needs the API without PREFECT_API_URL) exits when the process that started it is gone.
+
+    Idempotent; a no-op with a configured server (nothing is started then)."""
+    from prefect.settings import get_current_settings
+
+    if get_current_settings().api.url:
+        return
+    from prefect.server.api import server
+
+    if not isinstance(server.subprocess, _ServerSubprocess):
+        server.subprocess = _ServerSubprocess()  # type: ignore[assignment]

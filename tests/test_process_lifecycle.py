@@ -1,0 +1,190 @@
+"""Every process a `capvector run` starts dies with it, and nothing of a dead run commits afterwards.
+
+`kill -9` gives the CLI no chance to clean up, so each helper watches its own parent: the step
+workers (Prefect's process pool) ask the kernel for SIGKILL when the CLI dies (Linux) and also poll
+their parent; Prefect's embedded API servers (one per process that talks to Prefect) poll theirs.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from conftest import REPO
+
+pytestmark = pytest.mark.skipif(
+    not Path("/proc/self/stat").exists(), reason="reads the process tree in /proc"
+)
+
+
+def _stat(pid: int) -> list[str] | None:
+    """Fields of /proc/<pid>/stat after the command name (state, ppid, pgrp, session, ... starttime)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _tree(root: int) -> dict[int, tuple[str, str]]:
+    """{pid: (start time, command line)} of every live process below `root`."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").glob("[0-9]*"):
+        fields = _stat(int(entry.name))
+        if fields and fields[0] != "Z":
+            children.setdefault(int(fields[1]), []).append(int(entry.name))
+    found: dict[int, tuple[str, str]] = {}
+    frontier = [root]
+    while frontier:
+        for pid in children.get(frontier.pop(), []):
+            fields = _stat(pid)
+            if fields:
+                found[pid] = (fields[18], _cmdline(pid))
+                frontier.append(pid)
+    return found
+
+
+def _alive(pid: int, started: str) -> bool:
+    """The same process (pid and start time) still exists and is not a zombie."""
+    fields = _stat(pid)
+    return fields is not None and fields[18] == started and fields[0] != "Z"
+
+
+def _in_session(sid: int) -> list[int]:
+    alive = []
+    for entry in Path("/proc").glob("[0-9]*"):
+        fields = _stat(int(entry.name))
+        if fields and int(fields[3]) == sid and fields[0] != "Z":
+            alive.append(int(entry.name))
+    return alive
+
+
+def _committed(home: Path) -> set[str]:
+    """Sidecars (the store's commit points) and step-index entries in a home."""
+    store = {p.name for p in (home / "store" / "objects").glob("*/*.json")}
+    index = {p.name for p in (home / "step-cache").glob("*.json")}
+    return store | {f"index/{name}" for name in index}
+
+
+def _wait_until(condition, limit_s: float, poll_s: float = 0.2):
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(poll_s)
+    return condition()
+
+
+def test_kill_9_of_capvector_run_leaves_no_process_and_commits_nothing(tmp_path):
+    home = tmp_path / "home"
+    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke"],
+        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    try:
+
+        def helpers_up() -> dict[int, tuple[str, str]] | None:
+            tree = _tree(proc.pid)
+            workers = [p for p, (_, cmd) in tree.items() if "multiprocessing.spawn" in cmd]
+            servers = [p for p, (_, cmd) in tree.items() if "uvicorn" in cmd]
+            return tree if len(workers) >= 2 and len(servers) >= 3 else None  # the CLI's + each worker's
+
+        tree = _wait_until(lambda: proc.poll() is not None or helpers_up(), 300)
+        assert proc.poll() is None, "the run ended before its workers and servers were all up"
+        assert tree, f"workers and servers never came up: {_tree(proc.pid)}"
+        tree = _tree(proc.pid)  # a step may have started a short-lived helper meanwhile
+
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        committed_at_kill = _committed(home)
+
+        all_gone = _wait_until(
+            lambda: not [p for p, (t, _) in tree.items() if _alive(p, t)] and not _in_session(proc.pid),
+            10,
+        )
+        left = {p: cmd[:120] for p, (t, cmd) in tree.items() if _alive(p, t)}
+        assert all_gone, f"alive 10 s after kill -9 of the CLI: {left} (session: {_in_session(proc.pid)})"
+
+        time.sleep(2)  # anything still finishing a step would have written by now
+        assert _committed(home) == committed_at_kill, "a step of the killed run committed afterwards"
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+# An intermediate "CLI" whose children must die with it: a process-pool worker bound to its parent,
+# busy in a step (an idle one would notice its closed queue anyway), and a server started through
+# `die_with_parent`. It prints their pids, then waits to be killed.
+INTERMEDIATE = textwrap.dedent(
+    """
+    import multiprocessing, os, subprocess, sys, time
+    from concurrent.futures import ProcessPoolExecutor
+    from tasks.prefect_task import bind_worker_to_parent, die_with_parent
+
+    def busy(path):
+        with open(path, "w") as handle:
+            handle.write(str(os.getpid()))
+        time.sleep(300)
+
+    if __name__ == "__main__":
+        pool = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), bind_worker_to_parent)
+        pool.submit(busy, sys.argv[1])
+        server = subprocess.Popen(
+            die_with_parent([sys.executable, "-m", "http.server", "--bind", "127.0.0.1", "0"]),
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )
+        while not os.path.exists(sys.argv[1]) or not open(sys.argv[1]).read():
+            time.sleep(0.05)
+        print(open(sys.argv[1]).read(), server.pid, flush=True)
+        time.sleep(300)
+    """
+)
+
+
+def test_a_bound_worker_and_a_watched_server_die_with_their_parent(tmp_path):
+    script = tmp_path / "intermediate.py"
+    script.write_text(INTERMEDIATE)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(tmp_path / "worker.pid")],
+        cwd=REPO, stdout=subprocess.PIPE, text=True, start_new_session=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )  # fmt: skip
+    try:
+        worker, server = (int(x) for x in proc.stdout.readline().split())
+        started = {pid: _stat(pid)[18] for pid in (worker, server)}
+        assert _wait_until(lambda: "http.server" in _cmdline(server), 30), _cmdline(server)
+        assert all(_alive(pid, t) for pid, t in started.items())
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        gone = _wait_until(lambda: not any(_alive(pid, t) for pid, t in started.items()), 10, 0.05)
+        assert gone, {pid: _cmdline(pid) for pid, t in started.items() if _alive(pid, t)}
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def test_an_orphaned_worker_refuses_to_run_a_step(tmp_path, monkeypatch):
+    """Were a worker to outlive its CLI (no parent-death signal outside Linux), it starts no step."""
+    import tasks.prefect_task as prefect_task
+    from tasks.data import collect_demos_task
+
+    monkeypatch.setattr(prefect_task, "_bound_parent", os.getpid())  # we are not our own parent
+    with pytest.raises(prefect_task.RunAbandoned, match="parent"):
+        collect_demos_task.fn(str(tmp_path / "home"), "demos", {}, {})
+    assert not (tmp_path / "home").exists()
