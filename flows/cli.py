@@ -13,6 +13,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from artifacts.errors import ArtifactError
@@ -534,7 +535,7 @@ def main() -> None:
     terminated = _stop_descendants_on_sigterm()
     try:
         try:
-            app(standalone_mode=False)
+            code = app(standalone_mode=False)  # click returns a typer.Exit's code here
         except BaseException:
             if terminated():
                 _stop_descendants()
@@ -548,7 +549,8 @@ def main() -> None:
         FileNotFoundError,
         FileExistsError,
     ) as exc:
-        err.print(f"[bold red]error:[/] {exc}", soft_wrap=True)  # ids and paths stay whole
+        # ids and paths stay whole; a tensor named like rich markup (`x[/bold]`) prints as it is
+        err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
@@ -561,6 +563,8 @@ def main() -> None:
             exc.show()
             sys.exit(exc.exit_code)
         raise
+    if isinstance(code, int) and code:
+        sys.exit(code)
 
 
 if __name__ == "__main__":
