@@ -7,7 +7,6 @@ automatic catch-up (artifacts.api), so `verify` reports what an open would have 
 from __future__ import annotations
 
 import json
-import sys
 from typing import Annotated, Any
 
 import typer
@@ -29,9 +28,7 @@ def _api(home: str | None):
 
 
 def _fail() -> None:
-    # Not typer.Exit(1): flows.cli.main runs the app with standalone_mode=False, where click turns Exit
-    # into a return value that main() drops (exit status 0).
-    sys.exit(1)
+    raise typer.Exit(1)
 
 
 def _echo_json(data: Any) -> None:

@@ -67,9 +67,7 @@ def verify(
         if indexed is None:
             typer.echo("the catalogue could not be read: lineage was not compared with it", err=True)
     if failed:
-        # Not typer.Exit(1): flows.cli.main runs the app with standalone_mode=False, where click
-        # turns Exit into a return value that main() drops (exit status 0).
-        sys.exit(1)
+        raise typer.Exit(1)
 
 
 def _catalogue_lineage(api: Any) -> dict[str, tuple[str, str, set[tuple[str, str]]]] | None:
