@@ -22,6 +22,8 @@ give a change made right after the listing the same time. A remote store has no 
 is listed at most every REMOTE_SYNC_INTERVAL_S.
 """
 
+from __future__ import annotations
+
 import hashlib
 import json
 import logging
@@ -167,7 +169,7 @@ def rows_for(record: ArtifactRecord, doc: Doc = None) -> dict[str, list[dict[str
             checkpoint_id=doc.checkpoint_id,
             fingerprint=doc.fingerprint,
             library_versions=_json(doc.library_versions),
-            evaluated_at=doc.evaluated_at,
+            evaluated_at=doc.evaluated_at or record.created_at,
         )
         by_task: dict[str, list] = {}
         for i, ep in enumerate(doc.episodes):

@@ -183,12 +183,16 @@ class Episode(BaseModel):
 
 
 class EvaluationDoc(BaseModel):
-    """Content of a `kind="evaluation"` artifact; the catalogue's eval tables are derived from it."""
+    """Content of a `kind="evaluation"` artifact; the catalogue's eval tables are derived from it.
+
+    Only what the checkpoint, the protocol and the library versions determine, so the same evaluation
+    has the same id wherever and whenever it runs. When it ran is provenance: the sidecar's
+    `created_at`. `evaluated_at` is read from documents written before (never written: excluded)."""
 
     checkpoint_id: str
     fingerprint: str
     library_versions: dict[str, str | None] = Field(default_factory=dict)
-    evaluated_at: datetime = Field(default_factory=utcnow)
+    evaluated_at: datetime | None = Field(default=None, exclude=True)
     episodes: list[Episode]
 
 

@@ -1,5 +1,7 @@
 """Catalogue schema as forward migrations: the version table records which have been applied."""
 
+from __future__ import annotations
+
 from collections.abc import Sequence
 
 import duckdb

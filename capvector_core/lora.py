@@ -59,7 +59,7 @@ _UNSUPPORTED = ("modules_to_save", "trainable_token_indices", "target_parameters
 class LoraConfig(BaseModel):
     """LoRA hyper-parameters; B starts at zero, so an adapted model starts equal to its base."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # alpha, weights: finite numbers
 
     target_modules: list[str] = Field(min_length=1)  # module_patterns syntax
     r: int = Field(8, ge=1)

@@ -62,7 +62,7 @@ from capvector_core.lora import (
 class LoraSPConfig(BaseModel):
     """LoRA-SP hyper-parameters; defaults are the paper's (bank 128, alpha 256, η 0.9, 1e-2 / 1e-3)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # alpha, weights: finite numbers
 
     target_modules: list[str] = Field(min_length=1)
     bank_size: int = Field(128, ge=1)

@@ -49,7 +49,7 @@ _RESUME_FREE = {"checkpoint_every", "log_every", "num_threads", "device", "keep_
 
 
 class AuxConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # a NaN/inf weight: refused here
     name: str
     weight: float = Field(0.5, ge=0.0, description="loss weight (Spatial Forcing's default is 0.5)")
     params: dict[str, Any] = Field(default_factory=dict)
@@ -62,7 +62,8 @@ class AuxConfig(BaseModel):
 
 
 class TrainConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # lr, weight_decay, min_lr_ratio, grad_clip: finite numbers (NaN or inf is refused, naming the field)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     steps: int = Field(1000, gt=0)
     batch_size: int = Field(64, gt=0)
     lr: float = Field(3e-4, gt=0)

@@ -9,7 +9,8 @@ safetensors checkpoint, including a sharded Hugging Face one. Conventions:
   (NaN/Inf, overflow on the cast back, wrong base) run while streaming into a temporary name that is
   removed on failure, so a failed call never leaves an output behind;
 - outputs carry metadata: `capvector.kind`, `capvector.formula`, `capvector.coefficients`,
-  `capvector.inputs` (role -> path and sha256, hashed from the bytes read, in a helper thread),
+  `capvector.inputs` (role -> sha256, hashed from the bytes read, in a helper thread; never a path,
+  so the same inputs give the same bytes wherever they are stored, and hence the same artifact id),
   `capvector.include`/`capvector.exclude`, and for vectors `capvector.partial` and optionally
   `capvector.base_sha256` (the θ_pt the vector is meant to be added to); a merge also keeps base's
   metadata (its policy config: a merged policy loads like its base; see `merge`).
@@ -180,7 +181,9 @@ def _cast_back(acc: torch.Tensor, dtype: torch.dtype, name: str, inputs: list[tu
 
 
 def _inputs_meta(readers: dict[str, _HashingReader]) -> dict[str, dict[str, str]]:
-    return {role: {"path": str(r.ckpt.path), "sha256": _PLACEHOLDER} for role, r in readers.items()}
+    """role -> {"sha256": ...}: content digests only. A path (a store's, a home's, a user's folder) would
+    make the output's bytes, so its content id, depend on where the inputs happened to be read from."""
+    return {role: {"sha256": _PLACEHOLDER} for role in readers}
 
 
 def _run(
@@ -295,6 +298,9 @@ def merge(
     """
     if not vectors:
         raise VectorOpError("merge needs at least one (vector, coefficient) pair")
+    bad = [f"vector {i}: {alpha}" for i, (_, alpha) in enumerate(vectors) if not math.isfinite(float(alpha))]
+    if bad:  # NaN/inf would only show as a non-finite tensor once streaming reached it
+        raise VectorOpError(f"merge coefficients must be finite numbers ({', '.join(bad)})")
     b = Checkpoint(base)
     vecs = [(Checkpoint(p), float(alpha)) for p, alpha in vectors]
     for i, (v, _) in enumerate(vecs):

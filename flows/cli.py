@@ -40,6 +40,7 @@ SetOption = Annotated[list[str] | None, typer.Option("--set", help="override a c
 
 class State:
     home: str | None = None
+    debug: bool = os.environ.get("CAPVECTOR_DEBUG", "").lower() not in ("", "0", "false")
 
 
 @app.callback()
@@ -47,9 +48,16 @@ def main_options(
     home: Annotated[
         str | None, typer.Option("--home", envvar="CAPVECTOR_HOME", help="capvector home")
     ] = None,
+    debug: Annotated[
+        bool,
+        typer.Option("--debug", envvar="CAPVECTOR_DEBUG", help="show tracebacks and run logs on errors"),
+    ] = False,
 ) -> None:
     """capvector: capability vectors for VLA policies on Meta-World, with lineage."""
     State.home = home
+    State.debug = State.debug or debug
+    if State.debug:
+        os.environ["CAPVECTOR_DEBUG"] = "1"  # step workers inherit it
 
 
 def _home(home: str | None) -> str:
@@ -73,10 +81,11 @@ def _preflight() -> None:
     embedded one (no server configured) exits with this process, even after `kill -9` (step workers
     are bound to it by the flows' task runner)."""
     from flows.schedules import check_server_reachable
-    from tasks.prefect_task import make_embedded_servers_die_with_their_parent
+    from tasks.prefect_task import make_embedded_servers_die_with_their_parent, quiet_failed_run_logs
 
     check_server_reachable()
     make_embedded_servers_die_with_their_parent()
+    quiet_failed_run_logs()  # main() prints a failing run's error, in one line
 
 
 def _runner(runner: str, workers: int):
@@ -116,8 +125,11 @@ def run(
     if as_json:
         _print_json(ids)
         return
-    table = _workspace(home).api.store.open_json(ids["report"])
-    console.print(table["markdown"])
+    from tasks.reporting import markdown_table, timings
+
+    workspace = _workspace(home)
+    table = workspace.api.store.open_json(ids["report"])
+    console.print(markdown_table(table, timings(workspace, table)))  # speeds: from the records
     console.print(f"report: {ids['report']}   (capvector report {ids['report'][:12]})")
 
 
@@ -526,8 +538,46 @@ def _stop_descendants_on_sigterm() -> Callable[[], bool]:
     return terminated
 
 
+def one_line(exc: BaseException) -> str:
+    """An error as one line: its message (a pydantic error as `field: problem` per error, DuckDB's
+    multi-line messages joined), then its notes (the step it came from)."""
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError):
+        parts = []
+        for e in exc.errors(include_url=False):
+            where = ".".join(str(p) for p in e["loc"]) or exc.title
+            got = e.get("input")
+            shown = f" (got {got!r})" if isinstance(got, int | float | str) and len(repr(got)) <= 40 else ""
+            parts.append(f"{where}: {e['msg']}{shown}")
+        text = f"{exc.title}: " + "; ".join(parts)
+    else:
+        text = str(exc) or type(exc).__name__
+    notes = [n for n in getattr(exc, "__notes__", ()) if isinstance(n, str)]
+    return " ".join(line.strip() for part in [text, *notes] for line in part.splitlines() if line.strip())
+
+
+def _is_duckdb_error(exc: BaseException) -> bool:
+    return type(exc).__module__.split(".")[0] in ("duckdb", "_duckdb")
+
+
+def _fail(exc: BaseException, code: int) -> None:
+    """Print the error in one line (after its traceback with --debug) and exit with `code`."""
+    if State.debug:
+        import traceback
+
+        traceback.print_exception(exc)
+    text = one_line(exc)
+    if code == 1:  # not a user error: say what it is and where to look
+        text = f"{type(exc).__name__}: {text}" + ("" if State.debug else " (--debug shows the traceback)")
+    # ids and paths stay whole; a tensor named like rich markup (`x[/bold]`) prints as it is
+    err.print(f"[bold red]error:[/] {escape(text)}", soft_wrap=True)
+    sys.exit(code)
+
+
 def main() -> None:
-    """Console entry point: user errors print one clear line and exit 2, nothing half-written."""
+    """Console entry point: an error prints one line naming the problem and exits 2 (bad input) or 1
+    (anything else), nothing half-written; `--debug` (or CAPVECTOR_DEBUG=1) shows the traceback."""
     from pydantic import ValidationError
 
     from capvector_core.safetensors_io import CheckpointError
@@ -549,9 +599,7 @@ def main() -> None:
         FileNotFoundError,
         FileExistsError,
     ) as exc:
-        # ids and paths stay whole; a tensor named like rich markup (`x[/bold]`) prints as it is
-        err.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        sys.exit(2)
+        _fail(exc, 2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except typer.Abort:
@@ -562,7 +610,7 @@ def main() -> None:
         if isinstance(exc, ClickException):
             exc.show()
             sys.exit(exc.exit_code)
-        raise
+        _fail(exc, 2 if _is_duckdb_error(exc) else 1)  # a bad query is bad input
     if isinstance(code, int) and code:
         sys.exit(code)
 

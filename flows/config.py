@@ -99,14 +99,16 @@ class EvalSettings(BaseModel):
 class SweepSettings(BaseModel):
     """The α × λ grid of the `sweep` flow; choices are made on validation seeds only."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN/inf: refused, naming the field
     alphas: list[float] = Field(default_factory=lambda: [0.5, 1.1, 1.5])
     lambdas: list[float] = Field(default_factory=lambda: [1e-5, 1e-4, 1e-3])
     arm: ArmName = "capvector"
 
 
 class PipelineConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # NaN or inf in α or a learning rate would only fail after training: refused here, naming the field
+    # (the nested configs refuse them too: TrainConfig, AuxConfig, OrthogonalSettings, LoRA, LoRA-SP).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: str = "pipeline"
     splits: Splits
     data: DataSettings = DataSettings()
@@ -116,7 +118,7 @@ class PipelineConfig(BaseModel):
     aux: AuxConfig = AuxConfig(name="dynamics")
     downstream: TrainConfig
     vector: VectorFilter = VectorFilter()
-    alpha: float = 1.1
+    alpha: float = Field(1.1, allow_inf_nan=False)
     orthogonal: OrthogonalSettings = OrthogonalSettings()
     lora: LoraConfig = LoraConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"])
     lora_sp: LoraSPConfig = LoraSPConfig(
@@ -124,7 +126,7 @@ class PipelineConfig(BaseModel):
     )
     # Learning rate of the LoRA / LoRA-SP arms (adapters usually want several times full fine-tuning's);
     # None: downstream.lr. Choose it on validation goals, e.g. a one-cell `sweep` with sweep.arm=sft_lora.
-    adapter_lr: float | None = Field(None, gt=0)
+    adapter_lr: float | None = Field(None, gt=0, allow_inf_nan=False)
     arms: list[ArmName] = Field(default_factory=lambda: ["sft", "aux", "capvector"])
     seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
     evaluation: EvalSettings = EvalSettings()
@@ -229,5 +231,21 @@ def preset_path(preset: str) -> Path:
 
 
 def load_config(preset: str = "quick", overrides: list[str] | None = None) -> PipelineConfig:
-    data = yaml.safe_load(preset_path(preset).read_text()) or {}
+    path = preset_path(preset)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:  # a bad tag, indentation, an unclosed bracket: one line naming the place
+        raise ValueError(f"preset {path}: {yaml_problem(e)}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"preset {path}: expected a mapping of settings, got a {type(data).__name__}")
     return PipelineConfig.model_validate(apply_overrides(data, list(overrides or []), PipelineConfig))
+
+
+def yaml_problem(error: yaml.YAMLError) -> str:
+    """A YAML error in one line: where (line and column, 1-based) and what, without the excerpt."""
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None) or str(error)
+    context = getattr(error, "context", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    text = f"{where}{f'{context}, ' if context else ''}{problem}"
+    return " ".join(text.split())

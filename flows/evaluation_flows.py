@@ -42,21 +42,27 @@ def _previous_protocols(workspace: Workspace, checkpoint_id: str) -> list[dict[s
     return list(configs.values())
 
 
-def _latest_scores(workspace: Workspace, checkpoint_id: str, fingerprint: str, before_eval: str) -> dict:
+def _latest_scores(workspace: Workspace, checkpoint_id: str) -> dict[str, dict[str, float]]:
+    """fingerprint -> {task: success rate} of the checkpoint's latest evaluation under that protocol."""
     frame = workspace.api.query(
-        "SELECT task, success_rate, evaluation_id, evaluated_at FROM eval_tasks "
-        "WHERE checkpoint_id = ? AND fingerprint = ? AND evaluation_id <> ? ORDER BY evaluated_at",
-        [checkpoint_id, fingerprint, before_eval],
+        "SELECT fingerprint, task, success_rate FROM eval_tasks WHERE checkpoint_id = ? "
+        "ORDER BY evaluated_at",
+        [checkpoint_id],
     )
-    return {row.task: row.success_rate for row in frame.itertuples()}
+    latest: dict[str, dict[str, float]] = {}
+    for row in frame.itertuples():
+        latest.setdefault(row.fingerprint, {})[row.task] = row.success_rate
+    return latest
 
 
 @flow(name="reevaluate", log_prints=True)
 def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[dict[str, Any]]:
     """Re-run every (checkpoint, protocol) the selection yields under the installed library versions.
 
-    New scores are appended (evaluations are never overwritten); the summary lists, per checkpoint and
-    task, the previous and the new success rate under the same protocol fingerprint.
+    Evaluations are never overwritten: one whose episodes and library versions differ is a new artifact
+    beside the old; one that reproduces them exactly is the same artifact (content-addressed, same id).
+    The summary lists, per checkpoint and task, the previous and the new success rate under the same
+    protocol fingerprint (the previous ones read before anything ran).
     """
     workspace = Workspace(home)
     selected = workspace.api.query(selection_sql)
@@ -66,6 +72,7 @@ def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[d
     with recorded_run(
         workspace, "reevaluate", {"selection_sql": selection_sql, "checkpoints": checkpoint_ids}
     ):
+        previous = {cid: _latest_scores(workspace, cid) for cid in checkpoint_ids}
         jobs = [(cid, cfg) for cid in checkpoint_ids for cfg in _previous_protocols(workspace, cid)]
         futures = [
             (cid, reevaluate_task.submit(home, f"reevaluate {cid[:12]}", {"checkpoint": cid}, cfg))
@@ -76,7 +83,7 @@ def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[d
             eval_id = future.result()
             record = workspace.api.get(eval_id)
             fingerprint = workspace.api.store.open_json(eval_id)["fingerprint"]
-            before = _latest_scores(workspace, cid, fingerprint, eval_id)
+            before = previous[cid].get(fingerprint, {})
             for task_name, new in sorted(record.config["success_rates"].items()):
                 old = before.get(task_name)
                 changes.append(

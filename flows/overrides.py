@@ -63,7 +63,12 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     key = key.strip()
     if not key or any(not part for part in key.split(".")):
         raise ConfigKeyError(f"override {text!r} has an empty key segment")
-    return key.split("."), yaml.safe_load(raw) if raw.strip() else ""
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as e:  # a tag such as !!python/object, an unclosed bracket
+        problem = " ".join(str(getattr(e, "problem", None) or e).split())
+        raise ValueError(f"override {text!r}: the value is not valid YAML: {problem}") from None
+    return key.split("."), value
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[BaseModel]) -> dict[str, Any]:

@@ -127,15 +127,17 @@ def pipeline(config: dict[str, Any], home: str) -> dict[str, Any]:
             label: evaluate_task.submit(home, f"evaluate {label}", {"checkpoint": ckpt}, eval_config)
             for label, ckpt in checkpoints.items()
         }
-        report = report_task.submit(home, f"report {cfg.name}", evaluations, {"name": cfg.name}).result()
-        ood_report = _submit_ood_report(home, cfg, checkpoints)
+        # Results in the order the steps depend on each other: a failed step raises its own error here
+        # (naming the step), not a later step's UpstreamTaskError naming a task-run id.
         ids = {
             "datasets": {k: f.result() for k, f in stage["data"].items()},
             **{k: stage[k].result() for k in ("pretrained", "standard", "auxiliary", "vector", "meta")},
             "checkpoints": {k: f.result() for k, f in checkpoints.items()},
             "evaluations": {k: f.result() for k, f in evaluations.items()},
-            "report": report,
         }
+        report = report_task.submit(home, f"report {cfg.name}", evaluations, {"name": cfg.name}).result()
+        ids["report"] = report
+        ood_report = _submit_ood_report(home, cfg, checkpoints)
         if ood_report is not None:
             ids["ood_report"] = ood_report
         table = workspace.api.store.open_json(report)

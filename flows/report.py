@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from flows.config import ARMS  # noqa: E402
-from tasks.reporting import trained_with  # noqa: E402
+from tasks.reporting import markdown_table, timings, trained_with  # noqa: E402
 from tasks.workspace import Workspace  # noqa: E402
 
 
@@ -220,16 +220,20 @@ def write_report(
                     f"| {run['label']} | `{run['checkpoint_id'][:12]}` | `{run['evaluation_id'][:12]}` | "
                     f"{100 * run['mean_success']:.1f}% |"
                 )
+    # Rendered here, with the measured speeds from the training records: a report's content (its id)
+    # holds only what its checkpoints and scores determine, so its own `markdown` has no timings.
+    main_table = markdown_table(table, timings(workspace, table))
     parts = [
         f"# capvector report `{record.id[:12]}` ({record.name})\n\n",
         "Success rates in %, mean ± std over training seeds, final checkpoints only, test goal variations "
         "(evaluation seeds, disjoint from demonstration and validation seeds). Every id is a catalogue id: "
         "`capvector lineage ID` traces it to its data.\n\n",
         notes + "\n\n" if notes else "",
-        f"## Comparison\n\n{table['markdown']}\n![comparison]({figures['comparison'].name})\n",
+        f"## Comparison\n\n{main_table}\n![comparison]({figures['comparison'].name})\n",
     ]
     for title, tab in extra.items():
-        parts.append(f"\n## {title} (`{(sections or {})[title][:12]}`)\n\n{tab['markdown']}")
+        text = markdown_table(tab, timings(workspace, tab))
+        parts.append(f"\n## {title} (`{(sections or {})[title][:12]}`)\n\n{text}")
     if "convergence" in figures:
         parts.append(
             f"\n## Success against training steps\n\n![convergence]({figures['convergence'].name})\n"

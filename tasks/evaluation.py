@@ -15,7 +15,11 @@ from tasks.workspace import Workspace, provenance
 
 
 def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, Any]) -> dict[str, Any]:
-    """The store's evaluation document (artifacts.records.EvaluationDoc) from a core EvalResult."""
+    """The store's evaluation document (artifacts.records.EvaluationDoc) from a core EvalResult.
+
+    Its content, hence its id: what the checkpoint, the protocol and the library versions determine,
+    nothing else. When it ran, how long it took, where videos were written are provenance and go into
+    the record's config (its sidecar), never here, so one evaluation run twice has one id."""
     return {
         "checkpoint_id": checkpoint_id,
         "fingerprint": result.fingerprint,

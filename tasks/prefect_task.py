@@ -21,6 +21,7 @@ after `kill -9`, and nothing of a dead run may commit:
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import signal
 import subprocess
@@ -58,8 +59,12 @@ def pipeline_task(name: str, retries: int = 0) -> Callable[[Callable[..., Any]],
         @functools.wraps(fn)
         def run_step(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> Any:
             refuse_if_abandoned(step)
-            with step_outcomes() as outcomes:
-                artifact_id = fn(home, step, inputs, config)
+            try:
+                with step_outcomes() as outcomes:
+                    artifact_id = fn(home, step, inputs, config)
+            except Exception as exc:
+                exc.add_note(f"in step {step!r}")  # the CLI's one-line error names the step
+                raise
             if outcomes and all(outcome == "cached" for outcome in outcomes):
                 return Completed(name="Cached", data=artifact_id, message=f"content cache: {artifact_id}")
             return artifact_id
@@ -96,6 +101,37 @@ def bind_worker_to_parent() -> None:
     _bound_parent = parent.pid
     _start_watchdog(parent.pid)
     make_embedded_servers_die_with_their_parent()
+    quiet_failed_run_logs()
+
+
+# ---------------------------------------------------------------------------- failure logs
+DEBUG_ENV = "CAPVECTOR_DEBUG"  # set by the CLI's --debug; step workers inherit it
+
+
+class _QuietFailedRuns(logging.Filter):
+    """On the console, drop Prefect's ERROR records of a failing flow or task run (its traceback, its
+    "Finished in state Failed" line): the CLI prints that error itself, once, in one line. Records
+    still reach Prefect's API handler (the UI keeps them)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno < logging.ERROR or not record.name.startswith(
+            ("prefect.flow_runs", "prefect.task_runs")
+        )
+
+
+def quiet_failed_run_logs() -> None:
+    """Install `_QuietFailedRuns` on this process's console handlers, unless CAPVECTOR_DEBUG is set.
+    Called by the CLI before it starts a flow, and by each step worker (it logs its own failures)."""
+    if os.environ.get(DEBUG_ENV, "").lower() not in ("", "0", "false"):
+        return
+    from prefect.logging.configuration import ensure_logging_setup
+
+    ensure_logging_setup()  # Prefect's console handler on the root logger exists from here on
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.StreamHandler) and not any(
+            isinstance(f, _QuietFailedRuns) for f in handler.filters
+        ):
+            handler.addFilter(_QuietFailedRuns())
 
 
 def refuse_if_abandoned(step: str) -> None:

@@ -24,7 +24,13 @@ def trained_with(checkpoint_config: dict[str, Any], key: str) -> Any:
 
 
 def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, Any]:
-    """`evaluations`: label "<arm>/seed<k>" -> evaluation id. Refuses mixed protocols."""
+    """`evaluations`: label "<arm>/seed<k>" -> evaluation id. Refuses mixed protocols.
+
+    This is the report's content, so its id: only what the evaluated checkpoints and their scores
+    determine. Measured speeds and wall times differ from one run, machine or load to the next, so they
+    stay in the checkpoints' records (sidecars) and are read from there when a report is rendered
+    (`timings`, `markdown_table(table, timings)`).
+    """
     per_arm: dict[str, list[dict[str, Any]]] = {}
     fingerprints = set()
     for label, eval_id in sorted(evaluations.items()):
@@ -41,8 +47,6 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
                 "checkpoint_id": checkpoint.id,
                 "success_rates": record.config["success_rates"],
                 "mean_success": record.config["mean_success"],
-                "steps_per_s": summary.get("steps_per_s"),
-                "steps": summary.get("steps"),
                 "trainable_parameters": summary.get("trainable_parameters"),
                 "lr": trained_with(checkpoint.config, "lr"),
                 "active_ranks": summary.get("active_ranks"),
@@ -53,14 +57,9 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
     arms = {}
     for arm, runs in per_arm.items():
         tasks = sorted(runs[0]["success_rates"])
-        speeds = [r["steps_per_s"] for r in runs if r["steps_per_s"]]
-        walls = [r["steps"] / r["steps_per_s"] for r in runs if r["steps_per_s"] and r.get("steps")]
         arms[arm] = {
             "overall": _mean_std([r["mean_success"] for r in runs]),
             "per_task": {t: _mean_std([r["success_rates"][t] for r in runs]) for t in tasks},
-            # median: a seed's run may be a cache hit trained under other load (a sweep cell)
-            "ms_per_step": 1000.0 / statistics.median(speeds) if speeds else None,
-            "train_wall_s": statistics.median(walls) if walls else None,
             "trainable_parameters": runs[0]["trainable_parameters"],
             "lr": runs[0]["lr"],
             "runs": runs,
@@ -68,20 +67,43 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> dict[str, A
     return {"fingerprint": fingerprints.pop() if fingerprints else None, "arms": arms}
 
 
-def markdown_table(table: dict[str, Any]) -> str:
+def timings(workspace: Workspace, table: dict[str, Any]) -> dict[str, dict[str, float | None]]:
+    """arm -> `ms_per_step` and `train_wall_s`, medians over the arm's runs, from the training records
+    (the checkpoints' sidecars): provenance, kept out of the report's content.
+
+    Medians: a seed's checkpoint may be a cache hit trained under other load (a sweep cell)."""
+    out = {}
+    for arm, row in table["arms"].items():
+        speeds, walls = [], []
+        for run in row["runs"]:
+            summary = workspace.api.get(run["checkpoint_id"]).config.get("summary", {})
+            speed, steps = summary.get("steps_per_s"), summary.get("steps")
+            if speed:
+                speeds.append(speed)
+                if steps:
+                    walls.append(steps / speed)
+        out[arm] = {
+            "ms_per_step": 1000.0 / statistics.median(speeds) if speeds else None,
+            "train_wall_s": statistics.median(walls) if walls else None,
+        }
+    return out
+
+
+def markdown_table(table: dict[str, Any], timings: dict[str, dict[str, float | None]] | None = None) -> str:
+    """The comparison as Markdown; with `timings` (see `timings`), two columns of measured speed."""
     arms = table["arms"]
     if not arms:
         return "(no evaluations)\n"
     tasks = sorted(next(iter(arms.values()))["per_task"])
-    columns = ["ms/step (median)", "training s (median)", "trainable params", "lr", "seeds"]
-    head = ["arm", "overall", *tasks, *columns]
+    measured = ["ms/step (median)", "training s (median)"] if timings is not None else []
+    head = ["arm", "overall", *tasks, *measured, "trainable params", "lr", "seeds"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for arm, row in arms.items():
         cells = [arm, _pct(row["overall"])] + [_pct(row["per_task"][t]) for t in tasks]
-        ms, wall = row["ms_per_step"], row.get("train_wall_s")
+        if timings is not None:
+            ms, wall = (timings.get(arm, {}).get(k) for k in ("ms_per_step", "train_wall_s"))
+            cells += [f"{ms:.1f}" if ms else "-", f"{wall:.0f}" if wall else "-"]
         cells += [
-            f"{ms:.1f}" if ms else "-",
-            f"{wall:.0f}" if wall else "-",
             f"{row['trainable_parameters'] or '-'}",
             f"{row['lr']:g}" if row.get("lr") else "-",
             str(row["overall"]["n"]),

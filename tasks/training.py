@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from capvector_core import lora, lora_sp
 from capvector_core.demos import DemoDataset
@@ -36,7 +36,7 @@ class OrthogonalSettings(BaseModel):
     """λ·Σ|γ ⊙ Δ'|; `mode` for adapters: `lora_exact` (B·A materialised) or `lora_a` (A only)."""
 
     model_config = ConfigDict(extra="forbid")
-    weight: float = 1e-4
+    weight: float = Field(1e-4, allow_inf_nan=False)  # λ; NaN/inf refused at validation
     lora_mode: Literal["lora_exact", "lora_a"] = "lora_exact"
     include: list[str] | None = None
     exclude: list[str] | None = None

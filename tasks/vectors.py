@@ -22,7 +22,9 @@ class VectorFilter(BaseModel):
 
 
 class MergeConfig(VectorFilter):
-    alpha: float = Field(1.1, description="θ_meta = θ_pt + α·γ (the paper's best α is 1.1)")
+    alpha: float = Field(
+        1.1, allow_inf_nan=False, description="θ_meta = θ_pt + α·γ (the paper's best α is 1.1)"
+    )
 
 
 def stat_rows(stats: list[VectorStat], group_depth: int = 2) -> list[dict[str, Any]]:

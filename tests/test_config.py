@@ -1,5 +1,7 @@
 """Pipeline configuration: presets validate, overrides are checked key by key."""
 
+import re
+
 import pytest
 from pydantic import ValidationError
 
@@ -109,3 +111,53 @@ def test_switching_policy_type_drops_settings_the_new_type_lacks(monkeypatch):
     with pytest.warns(UserWarning, match=r"policy.type=mlp: d_model, n_heads do not apply"):
         config = load_config("smoke", ["policy.type=mlp", "policy.hidden=16"])
     assert config.policy.type == "mlp" and config.policy.hidden == 16 and config.policy.n_layers == 2
+
+
+# ---------------------------------------------------------------------------- NaN and Inf
+@pytest.mark.parametrize(
+    ("override", "field"),
+    [
+        ("alpha=.nan", "alpha"),
+        ("alpha=nan", "alpha"),  # a string that float() would take
+        ("alpha=-.inf", "alpha"),
+        ("adapter_lr=.inf", "adapter_lr"),
+        ("sweep.alphas=[0.5, .nan]", "sweep.alphas.1"),
+        ("sweep.lambdas=[.inf]", "sweep.lambdas.0"),
+        ("orthogonal.weight=.nan", "orthogonal.weight"),
+        ("orthogonal.weight=.inf", "orthogonal.weight"),
+        ("aux.weight=.inf", "aux.weight"),
+        ("downstream.lr=.inf", "downstream.lr"),
+        ("pretrain.weight_decay=.inf", "pretrain.weight_decay"),
+        ("extraction.grad_clip=.inf", "extraction.grad_clip"),
+        ("lora.alpha=.nan", "lora.alpha"),
+        ("lora_sp.alpha=.inf", "lora_sp.alpha"),
+        ("lora_sp.spectral_weight=.nan", "lora_sp.spectral_weight"),
+        ("lora_sp.router_weight=-.inf", "lora_sp.router_weight"),
+    ],
+)
+def test_nan_and_inf_are_refused_at_validation_naming_the_field(override, field):
+    """Before any step runs (NaN α used to fail only after training, in the merge)."""
+    with pytest.raises(ValidationError, match=rf"(?m)^{re.escape(field)}\n.*finite number"):
+        load_config("smoke", [override])
+
+
+def test_step_configs_refuse_nan_and_inf():
+    from capvector_core.lora import LoraConfig
+    from capvector_core.lora_sp import LoraSPConfig
+    from capvector_core.trainer import AuxConfig, TrainConfig
+    from tasks.training import OrthogonalSettings
+    from tasks.vectors import MergeConfig
+
+    nan, inf = float("nan"), float("inf")
+    cases = [
+        (MergeConfig, {"alpha": nan}, "alpha"),
+        (OrthogonalSettings, {"weight": inf}, "weight"),
+        (AuxConfig, {"name": "dynamics", "weight": inf}, "weight"),
+        (TrainConfig, {"lr": inf}, "lr"),
+        (TrainConfig, {"min_lr_ratio": nan}, "min_lr_ratio"),
+        (LoraConfig, {"target_modules": ["q"], "alpha": inf}, "alpha"),
+        (LoraSPConfig, {"target_modules": ["q"], "router_weight": nan}, "router_weight"),
+    ]
+    for model, data, field in cases:
+        with pytest.raises(ValidationError, match=rf"(?m)^{field}\n.*finite number"):
+            model.model_validate(data)

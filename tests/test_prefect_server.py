@@ -165,10 +165,9 @@ def test_served_reevaluation_deployment_writes_new_scores(smoke_home, tmp_path):
         )
         assert state == "COMPLETED", serve_log.read_text()[-4000:]
 
-        after = _evaluation_counts(home)
-        for key, n in before.items():
-            assert after[key] == n + 1, (key, n, after[key])  # one new evaluation, same protocol
-        assert set(after) == set(before)
+        # The same checkpoints, protocols and library versions reproduce the same episodes: the same
+        # evaluations (content-addressed ids), so nothing new in the store; the run and its summary are.
+        assert _evaluation_counts(home) == before
         runs = (
             ArtifactsAPI(str(home))
             .query("SELECT flow_name, state FROM runs WHERE flow_run_id = ?", [flow_run_id])

@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -122,6 +123,14 @@ def test_non_finite_input_named_and_nothing_written(tmp_path, bad, sharded, monk
     with pytest.raises(VectorOpError, match=r"backbone\.layers\.1\.weight"):
         merge(p_a, [(p_b, 1.0)], tmp_path / "m.safetensors")
     assert set(tmp_path.iterdir()) == before
+
+
+def test_non_finite_coefficient_refused_before_anything_is_read(tmp_path):
+    a = _write(tmp_path, "a", _random_ckpt(torch.float32, 0), False)
+    for alpha in (math.nan, math.inf, -math.inf):
+        with pytest.raises(VectorOpError, match=r"coefficients must be finite.*vector 1"):
+            merge(a, [(a, 1.0), (a, alpha)], tmp_path / "m.safetensors")
+    assert not (tmp_path / "m.safetensors").exists()
 
 
 def test_float16_overflow_refused(tmp_path):
@@ -258,3 +267,157 @@ def test_merged_policy_loads_as_a_policy(tmp_path):
     for k, v in pt.items():
         want = v + 1.5 * (ao[k] - ft[k]) if v.is_floating_point() else v
         torch.testing.assert_close(state[k], want, rtol=1e-6, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------- reproducible bytes
+@pytest.mark.parametrize("sharded", [False, True])
+def test_outputs_name_inputs_by_digest_only_so_any_folder_gives_the_same_bytes(tmp_path, sharded):
+    """The same inputs read from two homes (or a store and a user's folder) give one output, byte for
+    byte: `capvector.inputs` holds digests, never a path, so the output's content id is the same."""
+    pt, ft, ao = (_random_ckpt(torch.float32, s) for s in (0, 1, 2))
+    outs = {}
+    for home in ("home_a", "home_b"):
+        root = tmp_path / home / "store" / "objects"
+        root.mkdir(parents=True)
+        p_pt, p_ft, p_ao = (_write(root, n, t, sharded) for n, t in (("pt", pt), ("ft", ft), ("ao", ao)))
+        g = extract(p_ao, p_ft, root / "gamma.safetensors", base=p_pt)
+        m = merge(p_pt, [(g, 1.1)], root / ("meta" if sharded else "meta.safetensors"), max_shard_bytes=1500)
+        outs[home] = (g, m)
+        for out in (g, m):
+            meta = Checkpoint(out).metadata
+            assert all(str(tmp_path) not in v for v in meta.values()), meta
+            inputs = json.loads(meta["capvector.inputs"])
+            assert all(set(entry) == {"sha256"} for entry in inputs.values()), inputs
+    for a, b in zip(outs["home_a"], outs["home_b"], strict=True):
+        assert Checkpoint(a).sha256() == Checkpoint(b).sha256()
+        assert [f.read_bytes() for f in Checkpoint(a).files] == [f.read_bytes() for f in Checkpoint(b).files]
+
+
+# ---------------------------------------------------------------------------- the vector commands
+def _count(workspace) -> int:
+    return int(workspace.api.query("SELECT count(*) AS n FROM artifacts")["n"][0])
+
+
+@pytest.fixture
+def user(tmp_path):
+    """A user's folder of checkpoints (θ_pt, θ_ft, θ_ao and broken ones) and an empty home."""
+    from tasks.workspace import Workspace
+
+    folder = tmp_path / "user"
+    folder.mkdir()
+    pt, ft, ao = (_random_ckpt(torch.float32, s) for s in (0, 1, 2))
+    nan = {**ao, "head.proj.weight": ao["head.proj.weight"].clone()}
+    nan["head.proj.weight"][1, 2] = math.nan
+    missing = {k: v for k, v in pt.items() if k != "head.scale"}
+    paths = {n: _write(folder, n, t, False) for n, t in [("pt", pt), ("ft", ft), ("ao", ao), ("nan", nan),
+                                                          ("missing", missing)]}  # fmt: skip
+    return Workspace(str(tmp_path / "home")), folder, paths
+
+
+def test_failed_vector_commands_register_none_of_their_inputs(user):
+    from tasks.vector_commands import extract_cli, merge_cli, stats_cli
+
+    workspace, folder, p = user
+    before = sorted(folder.iterdir())
+    with pytest.raises(VectorOpError, match="NaN"):  # a value error, found while streaming
+        extract_cli(
+            workspace, str(p["nan"]), str(p["ft"]), folder / "g.safetensors", str(p["pt"]), None, None
+        )
+    assert _count(workspace) == 0  # θ_pt, θ_ft were fine, but nothing was made from them
+    with pytest.raises(VectorOpError, match="NaN"):
+        merge_cli(
+            workspace, str(p["pt"]), [(str(p["nan"]), 1.0)], folder / "m.safetensors", None, None, False
+        )
+    with pytest.raises(VectorOpError, match="head.scale"):  # a structural error, found before
+        merge_cli(workspace, str(p["missing"]), [(str(p["ft"]), 1.0)], folder / "m2", None, None, False)
+    with pytest.raises(VectorOpError, match="head.scale"):
+        stats_cli(workspace, str(p["ft"]), str(p["missing"]), None)
+    with pytest.raises(ValueError, match="alpha.*finite"):
+        merge_cli(workspace, str(p["pt"]), [(str(p["ft"]), math.nan)], folder / "m3", None, None, False)
+    assert _count(workspace) == 0
+    assert sorted(folder.iterdir()) == before  # no output, no temporary file
+
+
+def test_vector_commands_register_inputs_and_output_once_they_succeed(user):
+    from tasks.vector_commands import extract_cli, stats_cli
+
+    workspace, folder, p = user
+    out = folder / "gamma.safetensors"
+    record = extract_cli(workspace, str(p["ao"]), str(p["ft"]), out, str(p["pt"]), None, None)
+    assert record.id == Checkpoint(out).sha256()
+    parents = {r.role: r.id for r in record.parents}
+    assert parents == {role: Checkpoint(p[n]).sha256() for role, n in
+                       [("minuend", "ao"), ("subtrahend", "ft"), ("base", "pt")]}  # fmt: skip
+    stats_cli(workspace, str(out), str(p["pt"]), None)
+    assert _count(workspace) == 5  # θ_ao, θ_ft, θ_pt, γ, its statistics
+    assert sorted(x.name for x in folder.iterdir() if x.name.startswith(".")) == []
+
+
+@pytest.mark.parametrize("sharded", [False, True])
+def test_identical_rerun_registers_an_output_written_but_never_registered(user, sharded):
+    """Killed between writing `-o` and registering it: the same command again registers that output."""
+    from tasks.vector_commands import extract_cli, merge_cli
+
+    workspace, folder, p = user
+    out = folder / ("gamma" if sharded else "gamma.safetensors")
+    extract(p["ao"], p["ft"], out, base=p["pt"])  # what the killed command had written
+    mtime = out.stat().st_mtime_ns
+    record = extract_cli(workspace, str(p["ao"]), str(p["ft"]), out, str(p["pt"]), None, None)
+    assert out.stat().st_mtime_ns == mtime  # left as it was
+    stored = Checkpoint(workspace.path(record.id))
+    assert [f.read_bytes() for f in stored.files] == [f.read_bytes() for f in Checkpoint(out).files]
+
+    merged = folder / "merged.safetensors"
+    merge(p["pt"], [(out, 1.1)], merged)
+    again = merge_cli(workspace, str(p["pt"]), [(record.id, 1.1)], merged, None, None, False)
+    assert again.id == Checkpoint(merged).sha256()
+
+
+def test_an_existing_output_with_other_bytes_is_still_refused(user):
+    from tasks.vector_commands import extract_cli
+
+    workspace, folder, p = user
+    out = folder / "gamma.safetensors"
+    extract(p["ao"], p["ft"], out, include=["backbone.*"])  # another vector at that path
+    kept = out.read_bytes()
+    with pytest.raises(FileExistsError, match="already exists"):
+        extract_cli(workspace, str(p["ao"]), str(p["ft"]), out, None, None, None)
+    (folder / "junk.safetensors").write_bytes(b"keep me")
+    with pytest.raises(FileExistsError, match="already exists"):
+        extract_cli(workspace, str(p["ao"]), str(p["ft"]), folder / "junk.safetensors", None, None, None)
+    assert out.read_bytes() == kept and (folder / "junk.safetensors").read_bytes() == b"keep me"
+    assert _count(workspace) == 0
+    assert sorted(x.name for x in folder.iterdir() if x.name.startswith(".")) == []
+
+
+@pytest.mark.parametrize("sharded", [False, True])
+def test_a_command_killed_while_writing_leaves_nothing_in_the_users_folder(user, sharded):
+    """SIGKILL in the middle of streaming: no temporary file or folder beside `-o`."""
+    import subprocess
+    import sys
+
+    workspace, folder, p = user
+    out = folder / ("gamma" if sharded else "gamma.safetensors")
+    before = sorted(folder.iterdir())
+    code = f"""
+import os, sys
+sys.path.insert(0, {str(Path(__file__).resolve().parent.parent)!r})
+from capvector_core import vector_ops
+from tasks.vector_commands import extract_cli
+from tasks.workspace import Workspace
+from pathlib import Path
+
+calls = []
+real = vector_ops._cast_back
+def dying(*args):
+    calls.append(1)
+    if len(calls) == 3:
+        os.kill(os.getpid(), 9)
+    return real(*args)
+vector_ops._cast_back = dying
+ws = Workspace({workspace.home!r})
+extract_cli(ws, {str(p["ao"])!r}, {str(p["ft"])!r}, Path({str(out)!r}), None, None, None)
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -9, proc.stderr
+    assert sorted(folder.iterdir()) == before

@@ -1,0 +1,135 @@
+"""Artifact ids are reproducible: the same work in two homes gives the same ids.
+
+An id is the sha256 of an artifact's content, so no path, host, time, pid or random value may enter
+the content; those are provenance and live in the sidecar record beside it. One fast test per place
+that used to leak such a value into content (the vector files' metadata, the evaluation document, the
+report), and the end-to-end check: two `capvector run --preset smoke` in two homes (slow).
+"""
+
+import json
+from datetime import datetime
+
+import pytest
+import torch
+from conftest import run_cli
+
+from artifacts.api import ArtifactsAPI
+from capvector_core.evaluation import EpisodeRecord, EvalConfig, EvalResult
+from capvector_core.safetensors_io import Checkpoint, write_checkpoint
+from tasks import reporting
+from tasks.evaluation import evaluation_doc
+from tasks.vectors import run_extract, run_merge
+from tasks.workspace import Workspace, library_versions
+
+SHAPES = {"blocks.0.attn.weight": (6, 4), "blocks.0.attn.bias": (6,), "blocks.1.mlp.weight": (3, 6)}
+
+
+def _checkpoint(path, seed: int):
+    gen = torch.Generator().manual_seed(seed)
+    write_checkpoint(path, {k: torch.randn(s, generator=gen) for k, s in SHAPES.items()})
+    return path
+
+
+def _homes(tmp_path) -> list[Workspace]:
+    return [Workspace(str(tmp_path / name)) for name in ("home_a", "home_b")]
+
+
+def test_vector_and_merge_steps_give_the_same_ids_in_two_homes(tmp_path):
+    """γ and θ_meta used to carry the absolute store paths of their inputs in their metadata."""
+    files = {n: _checkpoint(tmp_path / f"{n}.safetensors", s) for n, s in [("pt", 0), ("ft", 1), ("ao", 2)]}
+    ids = []
+    for ws in _homes(tmp_path):
+        inputs = {n: ws.api.register_file(p, kind="checkpoint", name=n).id for n, p in files.items()}
+        vector = run_extract(
+            ws, "γ", {"minuend": inputs["ao"], "subtrahend": inputs["ft"], "base": inputs["pt"]}, {}
+        )
+        meta = run_merge(ws, "θ_meta", {"base": inputs["pt"], "vector": vector}, {"alpha": 1.1})
+        stats = ws.api.query("SELECT DISTINCT stats_id FROM vector_stats")["stats_id"].tolist()
+        for artifact in (vector, meta):
+            header = json.dumps(Checkpoint(ws.path(artifact)).metadata)
+            assert ws.home not in header and str(tmp_path) not in header, header
+        ids.append((vector, meta, stats))
+    assert ids[0] == ids[1]
+
+
+def _result(wall_time_s: float) -> EvalResult:
+    config = EvalConfig(tasks=["reach-v3"], episodes_per_task=2, horizon=5)
+    episodes = [EpisodeRecord(task="reach-v3", seed=100000 + i, success=i == 0, steps=5, episode_return=1.5)
+                for i in range(2)]  # fmt: skip
+    return EvalResult(
+        config=config,
+        fingerprint="f" * 64,
+        protocol={"camera": "corner2"},
+        versions={"mujoco": "3.3.0"},
+        episodes=episodes,
+        success_rates={"reach-v3": 0.5},
+        mean_success=0.5,
+        env_steps=10,
+        policy_calls=4,
+        wall_time_s=wall_time_s,
+        videos={"reach-v3": f"/tmp/videos-{wall_time_s}/reach.mp4"},
+    )
+
+
+def test_an_evaluation_gives_the_same_id_in_two_homes_and_at_two_times(tmp_path):
+    """The document used to carry `evaluated_at` (added by the store's EvaluationDoc): a time in
+    content. When it ran is the sidecar's `created_at`."""
+    ckpt = _checkpoint(tmp_path / "ckpt.safetensors", 0)
+    ids = []
+    for ws, wall in zip(_homes(tmp_path), (1.0, 2.0), strict=True):
+        checkpoint = ws.api.register_file(ckpt, kind="checkpoint", name="ckpt").id
+        doc = evaluation_doc(checkpoint, _result(wall), library_versions())
+        assert not {"evaluated_at", "wall_time_s", "videos"} & set(doc), doc
+        record = ws.api.register_evaluation(doc, name="evaluate", config={"wall_time_s": wall})
+        stored = ws.api.store.open_json(record.id)
+        assert "evaluated_at" not in stored, stored
+        assert record.created_at  # when it ran: in the sidecar
+        ids.append(record.id)
+    assert ids[0] == ids[1]
+
+
+def test_a_report_gives_the_same_id_whatever_the_measured_speeds(tmp_path):
+    """The report used to hold each run's steps/s, ms/step and wall time: a measurement of the machine
+    and its load, different on every run. They stay in the checkpoints' records, and `capvector report`
+    reads them from there."""
+    from flows.report import write_report
+
+    ckpt = _checkpoint(tmp_path / "ckpt.safetensors", 0)
+    ids = []
+    for ws, speed in zip(_homes(tmp_path), (10.0, 40.0), strict=True):
+        summary = {"steps": 20, "steps_per_s": speed, "trainable_parameters": 123}
+        config = {"summary": summary, "train_step": {"train": {"lr": 3e-4, "steps": 20}}}
+        checkpoint = ws.api.register_file(ckpt, kind="checkpoint", name="sft", config=config).id
+        doc = {**evaluation_doc(checkpoint, _result(1.0), {}), "evaluated_at": datetime(2026, 1, 1)}
+        evaluation = ws.api.register_evaluation(
+            doc, name="evaluate", config={"success_rates": {"reach-v3": 0.5}, "mean_success": 0.5}
+        ).id
+        report = reporting.run_report(ws, "report", {"sft/seed0": evaluation}, {"name": "t"})
+        content = json.dumps(ws.api.store.open_json(report))
+        assert "steps_per_s" not in content and "ms_per_step" not in content and "wall" not in content
+        ids.append(report)
+        text = write_report(ws, report, tmp_path / ws.home / "report.md").read_text()
+        assert f"| {1000 / speed:.1f} | {20 / speed:.0f} | 123 | 0.0003 | 1 |" in text  # from the sidecar
+    assert ids[0] == ids[1]
+
+
+@pytest.mark.slow
+def test_two_smoke_runs_in_two_homes_give_identical_ids_for_every_artifact(tmp_path):
+    """Done-when of the issue: every id `capvector run --json` prints, and every artifact in the two
+    catalogues, is the same in both homes (~3 minutes on 2 cores)."""
+    homes = [tmp_path / "home_a", tmp_path / "home_b"]
+    outputs = [json.loads(run_cli("run", "--preset", "smoke", "--json", home=h).stdout) for h in homes]
+    assert outputs[0] == outputs[1]
+    catalogues = []
+    for home in homes:
+        frame = ArtifactsAPI(str(home)).query("SELECT id, kind, name FROM artifacts ORDER BY id")
+        catalogues.append(sorted(map(tuple, frame.values.tolist())))
+    assert catalogues[0] == catalogues[1]
+    printed = _ids_in(outputs[0])
+    assert printed and printed <= {row[0] for row in catalogues[0]}
+
+
+def _ids_in(value) -> set[str]:
+    if isinstance(value, dict):
+        return set().union(*(_ids_in(v) for v in value.values())) if value else set()
+    return {value} if isinstance(value, str) and len(value) == 64 else set()
