@@ -495,3 +495,24 @@ def test_an_error_naming_rich_markup_prints_it_verbatim(monkeypatch, capsys):
         assert "tensor 'x[/bold]' is bad" in capsys.readouterr().err
     finally:
         cli.app.registered_commands.pop()
+
+
+def test_on_a_smoke_run_every_edge_appears_in_the_lineage_views(smoke_home):
+    """History is a DAG: the mermaid view of the report's ancestors draws every edge among them."""
+    home, ids = smoke_home
+    api = ArtifactsAPI(str(home))
+    report = ids["report"]
+    ancestors = {r["id"] for r in json.loads(invoke(home, "lineage", report, "--format", "json").stdout)}
+    ancestors.add(report)
+    edges = {
+        (parent[:12], role, child[:12])
+        for parent, child, role in api.query("SELECT parent, child, role FROM edges").values.tolist()
+        if parent in ancestors and child in ancestors
+    }
+    assert len(edges) > 17  # data, init, minuend/subtrahend, base, vector, evaluations, report inputs
+    mermaid = invoke(home, "lineage", report, "--format", "mermaid").stdout
+    drawn = set(re.findall(r'n([0-9a-f]{12})\["[^"]*"\] -->\|([^|]+)\| n([0-9a-f]{12})\[', mermaid))
+    assert edges <= drawn, sorted(edges - drawn)
+    tree = invoke(home, "lineage", report).stdout
+    for parent, _, child in edges:
+        assert parent in tree and child in tree
