@@ -77,14 +77,11 @@ def _print_json(data: Any) -> None:
 
 
 def _preflight() -> None:
-    """Before any flow: a configured but unreachable Prefect server is an error, not a hang; and an
-    embedded one (no server configured) exits with this process, even after `kill -9` (step workers
-    are bound to it by the flows' task runner)."""
+    """Before any flow: a configured but unreachable Prefect server is an error, not a hang."""
     from flows.schedules import check_server_reachable
-    from tasks.prefect_task import make_embedded_servers_die_with_their_parent, quiet_failed_run_logs
+    from tasks.prefect_task import quiet_failed_run_logs
 
     check_server_reachable()
-    make_embedded_servers_die_with_their_parent()
     quiet_failed_run_logs()  # main() prints a failing run's error, in one line
 
 

@@ -13,9 +13,10 @@ after `kill -9`, and nothing of a dead run may commit:
 - a worker asks the kernel for SIGKILL when the CLI dies (Linux, `PR_SET_PDEATHSIG`), so it cannot
   run a line after that; a watchdog thread (any OS) exits it when its parent changes, and a step does
   not start in a worker whose parent is gone (`RunAbandoned`);
-- an embedded API server is started under a small launcher whose watchdog thread exits it when the
-  process that started it is gone (no parent-death signal there: it fires when the *thread* that
-  started the child ends, and Prefect may start its server from a short-lived thread).
+- Prefect's embedded API servers are not bound yet: one started through a launcher with a parent
+  watchdog was once found dead mid-run, leaving its worker waiting forever to flush events, so the
+  launcher was taken out; after `kill -9` the servers outlive the CLI (its process group still ends
+  them) until the run uses one server that the workers attach to (issue 16).
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ import functools
 import logging
 import os
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -100,7 +100,6 @@ def bind_worker_to_parent() -> None:
         os._exit(1)
     _bound_parent = parent.pid
     _start_watchdog(parent.pid)
-    make_embedded_servers_die_with_their_parent()
     quiet_failed_run_logs()
 
 
@@ -159,63 +158,3 @@ def _start_watchdog(parent: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="capvector-parent-watchdog", daemon=True).start()
-
-
-# ---------------------------------------------------------------------------- embedded API servers
-# Runs `python -m MODULE ARGS...` in this process after starting a watchdog on the parent whose pid
-# is argv[1] (the process that launched it). No imports beyond the standard library.
-_LAUNCHER = f"""\
-import os, runpy, sys, threading, time
-parent = int(sys.argv[1])
-if os.getppid() != parent:
-    os._exit(1)
-def watch():
-    while os.getppid() == parent:
-        time.sleep({WATCHDOG_PERIOD_S!r})
-    os._exit(1)
-threading.Thread(target=watch, name="capvector-parent-watchdog", daemon=True).start()
-if sys.argv[2] != "-m":
-    sys.exit("launcher: expected -m MODULE ...")
-module = sys.argv[3]
-sys.argv = [module, *sys.argv[4:]]
-runpy.run_module(module, run_name="__main__", alter_sys=True)
-"""
-
-
-def die_with_parent(argv: list[str]) -> list[str]:
-    """`[python, "-m", module, *args]` -> the same command, exiting when this process is gone."""
-    if len(argv) < 3 or argv[1] != "-m":
-        return list(argv)
-    return [argv[0], "-c", _LAUNCHER, str(os.getpid()), *argv[1:]]
-
-
-class _PopenDyingWithParent(subprocess.Popen):
-    def __init__(self, args: Any, *rest: Any, **kwargs: Any) -> None:
-        if isinstance(args, list | tuple) and all(isinstance(a, str) for a in args):
-            args = die_with_parent(list(args))
-        super().__init__(args, *rest, **kwargs)
-
-
-class _ServerSubprocess:
-    """The `subprocess` module as prefect.server.api.server sees it: its one Popen (the uvicorn
-    command of `SubprocessASGIServer`) goes through the launcher; everything else is unchanged."""
-
-    Popen = _PopenDyingWithParent
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(subprocess, name)
-
-
-def make_embedded_servers_die_with_their_parent() -> None:
-    """Prefect's embedded API server (a `python -m uvicorn` child, started the first time a process
-    needs the API without PREFECT_API_URL) exits when the process that started it is gone.
-
-    Idempotent; a no-op with a configured server (nothing is started then)."""
-    from prefect.settings import get_current_settings
-
-    if get_current_settings().api.url:
-        return
-    from prefect.server.api import server
-
-    if not isinstance(server.subprocess, _ServerSubprocess):
-        server.subprocess = _ServerSubprocess()  # type: ignore[assignment]
