@@ -27,10 +27,6 @@ def _api(home: str | None):
     return ArtifactsAPI(_home(home), catch_up=False)
 
 
-def _fail() -> None:
-    raise typer.Exit(1)
-
-
 def _echo_json(data: Any) -> None:
     typer.echo(json.dumps(data, indent=1, default=str))
 
@@ -39,32 +35,28 @@ def _listed(title: str, ids: list[str]) -> list[str]:
     return [f"{title}: {len(ids)}", *(f"  {i}" for i in ids)] if ids else []
 
 
-@catalogue_app.command()
-def sync(home: HomeOption = None, as_json: JsonOption = False) -> None:
-    """Index what the store has and the catalogue lacks (reads only the missing sidecars)."""
-    report = _api(home).sync()
+def _index_report(report, done: str, skipped: str, as_json: bool) -> None:
+    """sync and rebuild print the same report; verification failures make the command fail."""
     if as_json:
         _echo_json(report.model_dump())
     else:
-        typer.echo(f"indexed {report.artifacts} artifacts and {report.runs} runs in {report.seconds:.2f} s")
-        for line in _listed("not indexed, failed verification", report.corrupt):
+        typer.echo(f"{done}: {report.artifacts} artifacts, {report.runs} runs in {report.seconds:.2f} s")
+        for line in _listed(skipped, report.corrupt):
             typer.echo(line)
     if report.corrupt:
-        _fail()
+        raise typer.Exit(1)
+
+
+@catalogue_app.command()
+def sync(home: HomeOption = None, as_json: JsonOption = False) -> None:
+    """Index what the store has and the catalogue lacks (reads only the missing sidecars)."""
+    _index_report(_api(home).sync(), "indexed", "not indexed, failed verification", as_json)
 
 
 @catalogue_app.command()
 def rebuild(home: HomeOption = None, as_json: JsonOption = False) -> None:
     """Recreate the catalogue from the store alone (one transaction: readers see old or new)."""
-    report = _api(home).rebuild()
-    if as_json:
-        _echo_json(report.model_dump())
-    else:
-        typer.echo(f"rebuilt: {report.artifacts} artifacts, {report.runs} runs in {report.seconds:.2f} s")
-        for line in _listed("skipped, failed verification", report.corrupt):
-            typer.echo(line)
-    if report.corrupt:
-        _fail()
+    _index_report(_api(home).rebuild(), "rebuilt", "skipped, failed verification", as_json)
 
 
 @catalogue_app.command()
@@ -91,7 +83,7 @@ def verify(home: HomeOption = None, as_json: JsonOption = False) -> None:
                 typer.echo(line)
         typer.echo("in step" if report.ok else "differences found")
     if not report.ok:
-        _fail()
+        raise typer.Exit(1)
 
 
 @catalogue_app.command()

@@ -461,40 +461,36 @@ def test_a_policy_merged_on_the_cli_is_a_loadable_policy(tmp_path, policy_type):
         torch.testing.assert_close(policy.state_dict()[k], v)
 
 
+def _main_with_command(monkeypatch, failing) -> SystemExit:
+    """Run `flows.cli.main` on a command registered just for the test; the SystemExit it ends with."""
+    from flows import cli
+
+    cli.app.command("failing-for-test")(failing)
+    try:
+        monkeypatch.setattr(sys, "argv", ["capvector", "failing-for-test"])
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main()
+        return exit_info.value
+    finally:
+        cli.app.registered_commands.pop()
+
+
 def test_an_exit_code_from_a_command_reaches_the_shell(monkeypatch):
     """click returns a typer.Exit's code under standalone_mode=False; main() must not drop it."""
     import typer
 
-    from flows import cli
-
     def failing() -> None:
         raise typer.Exit(3)
 
-    cli.app.command("exit-three-for-test")(failing)
-    try:
-        monkeypatch.setattr(sys, "argv", ["capvector", "exit-three-for-test"])
-        with pytest.raises(SystemExit) as exit_info:
-            cli.main()
-        assert exit_info.value.code == 3
-    finally:
-        cli.app.registered_commands.pop()
+    assert _main_with_command(monkeypatch, failing).code == 3
 
 
 def test_an_error_naming_rich_markup_prints_it_verbatim(monkeypatch, capsys):
-    from flows import cli
-
     def failing() -> None:
         raise ValueError("tensor 'x[/bold]' is bad")
 
-    cli.app.command("markup-error-for-test")(failing)
-    try:
-        monkeypatch.setattr(sys, "argv", ["capvector", "markup-error-for-test"])
-        with pytest.raises(SystemExit) as exit_info:
-            cli.main()
-        assert exit_info.value.code == 2
-        assert "tensor 'x[/bold]' is bad" in capsys.readouterr().err
-    finally:
-        cli.app.registered_commands.pop()
+    assert _main_with_command(monkeypatch, failing).code == 2
+    assert "tensor 'x[/bold]' is bad" in capsys.readouterr().err
 
 
 def test_on_a_smoke_run_every_edge_appears_in_the_lineage_views(smoke_home):
