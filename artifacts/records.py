@@ -185,6 +185,9 @@ class Episode(BaseModel):
 class EvaluationDoc(BaseModel):
     """Content of a `kind="evaluation"` artifact; the catalogue's eval tables are derived from it.
 
+    Its episodes are the only record of its scores: readers get them from the catalogue
+    (artifacts.scores), and the sidecar carries none (older sidecars' copies are never read).
+
     Only what the checkpoint, the protocol and the library versions determine, so the same evaluation
     has the same id wherever and whenever it runs. When it ran is provenance: the sidecar's
     `created_at`. `evaluated_at` is read from documents written before (never written: excluded)."""

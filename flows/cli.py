@@ -164,23 +164,16 @@ def evaluate(
     if task_runner is not None:
         flow_fn = evaluate_flow.with_options(task_runner=task_runner)
     result = flow_fn(_home(home), checkpoints, config.model_dump(mode="json"))
-    ws = _workspace(home)
-    rows = [
-        {
-            "checkpoint": c,
-            "evaluation": e,
-            "mean_success": ws.api.get(e).config["mean_success"],
-            "success_rates": ws.api.get(e).config["success_rates"],
-        }
-        for c, e in result.items()
-    ]
+    from artifacts.scores import read_scores
+
+    scores = {s.evaluation_id: s for s in read_scores(_workspace(home).api, evaluations=result.values())}
     if as_json:
-        _print_json(rows)
+        _print_json([{"checkpoint": c, "evaluation": e, **scores[e].model_dump()} for c, e in result.items()])
         return
     table = Table("checkpoint", "evaluation", "mean success", "per task")
-    for r in rows:
-        per_task = ", ".join(f"{t}: {100 * v:.0f}%" for t, v in r["success_rates"].items())
-        table.add_row(r["checkpoint"][:12], r["evaluation"][:12], f"{100 * r['mean_success']:.1f}%", per_task)
+    for c, e in result.items():
+        per_task = ", ".join(f"{t}: {100 * v:.0f}%" for t, v in scores[e].success_rates.items())
+        table.add_row(c[:12], e[:12], f"{100 * scores[e].mean_success:.1f}%", per_task)
     console.print(table)
 
 
@@ -341,19 +334,19 @@ def compare(
         plot_compare(result, plot)
         err.print(f"wrote {plot}")
     if as_json:
-        _print_json(result)
+        _print_json(result.model_dump(mode="json"))
         return
-    tasks = sorted({t for row in result["rows"] for t in row["success_rates"]})
+    tasks = sorted({t for row in result.rows for t in row.success_rates})
     table = Table("checkpoint", "name", *tasks, "mean")
-    for row in result["rows"]:
+    for row in result.rows:
         table.add_row(
-            row["checkpoint_id"][:12],
-            row["name"],
-            *[f"{100 * row['success_rates'].get(t, 0):.0f}%" for t in tasks],
-            f"{100 * row['mean']:.1f}%",
+            row.checkpoint_id[:12],
+            row.name,
+            *[f"{100 * row.success_rates[t]:.0f}%" for t in tasks],
+            f"{100 * row.mean:.1f}%",
         )
     console.print(table)
-    console.print(f"protocol {result['fingerprint'][:12]}")
+    console.print(f"protocol {result.fingerprint[:12]}")
 
 
 @app.command()

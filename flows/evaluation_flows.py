@@ -6,6 +6,7 @@ from typing import Any
 
 from prefect import flow
 
+from artifacts.scores import read_scores
 from capvector_core.evaluation import EvalConfig
 from flows.runs import publish_markdown, recorded_run
 from tasks.evaluation import evaluate_task, reevaluate_task
@@ -44,15 +45,7 @@ def _previous_protocols(workspace: Workspace, checkpoint_id: str) -> list[dict[s
 
 def _latest_scores(workspace: Workspace, checkpoint_id: str) -> dict[str, dict[str, float]]:
     """fingerprint -> {task: success rate} of the checkpoint's latest evaluation under that protocol."""
-    frame = workspace.api.query(
-        "SELECT fingerprint, task, success_rate FROM eval_tasks WHERE checkpoint_id = ? "
-        "ORDER BY evaluated_at",
-        [checkpoint_id],
-    )
-    latest: dict[str, dict[str, float]] = {}
-    for row in frame.itertuples():
-        latest.setdefault(row.fingerprint, {})[row.task] = row.success_rate
-    return latest
+    return {s.fingerprint: s.success_rates for s in read_scores(workspace.api, checkpoints=[checkpoint_id])}
 
 
 @flow(name="reevaluate", log_prints=True)
@@ -81,10 +74,10 @@ def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[d
         changes = []
         for cid, future in futures:
             eval_id = future.result()
-            record = workspace.api.get(eval_id)
-            fingerprint = workspace.api.store.open_json(eval_id)["fingerprint"]
+            (scores,) = read_scores(workspace.api, evaluations=[eval_id])
+            fingerprint = scores.fingerprint
             before = previous[cid].get(fingerprint, {})
-            for task_name, new in sorted(record.config["success_rates"].items()):
+            for task_name, new in sorted(scores.success_rates.items()):
                 old = before.get(task_name)
                 changes.append(
                     {

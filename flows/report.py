@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from flows.config import ARMS  # noqa: E402
-from tasks.reporting import markdown_table, timings, trained_with  # noqa: E402
+from tasks.reporting import Report, load_report, markdown_table, timings, trained_with  # noqa: E402
 from tasks.workspace import Workspace  # noqa: E402
 
 
@@ -28,10 +28,10 @@ def latest_report_id(workspace: Workspace) -> str:
     return str(frame.iloc[0, 0])
 
 
-def plot_comparison(table: dict[str, Any], path: Path) -> Path:
-    arms = list(table["arms"])
-    means = [100 * table["arms"][a]["overall"]["mean"] for a in arms]
-    stds = [100 * table["arms"][a]["overall"]["std"] for a in arms]
+def plot_comparison(report: Report, path: Path) -> Path:
+    arms = list(report.arms)
+    means = [100 * row.overall.mean for row in report.arms.values()]
+    stds = [100 * row.overall.std for row in report.arms.values()]
     fig, ax = plt.subplots(figsize=(1.4 * len(arms) + 2, 3.2))
     ax.bar(arms, means, yerr=stds, capsize=4, color="#4c72b0")
     ax.set_ylabel("downstream success (%)")
@@ -72,11 +72,11 @@ def plot_curves(curves: dict[str, list[dict[str, Any]]], path: Path) -> Path:
     return path
 
 
-def _vector_of(workspace: Workspace, table: dict[str, Any]) -> str | None:
+def _vector_of(workspace: Workspace, report: Report) -> str | None:
     """The capability vector behind this report's runs (merged into, or regularizing, a checkpoint)."""
-    for row in table["arms"].values():
-        for run in row["runs"]:
-            merged = workspace.api.vectors_merged_into(run["checkpoint_id"])
+    for row in report.arms.values():
+        for run in row.runs:
+            merged = workspace.api.vectors_merged_into(run.checkpoint_id)
             if merged:
                 return merged[0].vector_id
     return None
@@ -165,33 +165,30 @@ def write_report(
     learning rate is chosen) gathered into one table.
     """
     record = workspace.api.get(report_id)
-    table = workspace.api.store.open_json(record.id)
+    table = load_report(workspace, record.id)
     out.parent.mkdir(parents=True, exist_ok=True)
     stem = out.stem
     figures = {"comparison": plot_comparison(table, out.parent / f"{stem}_comparison.png")}
-    extra = {
-        title: workspace.api.store.open_json(workspace.api.get(rid).id)
-        for title, rid in (sections or {}).items()
-    }
+    extra = {title: load_report(workspace, rid) for title, rid in (sections or {}).items()}
 
     curves = {}
-    for arm, row in table["arms"].items():
-        run = row["runs"][0]
-        curve = workspace.api.get(run["checkpoint_id"]).config.get("curve")
+    for arm, row in table.arms.items():
+        run = row.runs[0]
+        curve = workspace.api.get(run.checkpoint_id).config.get("curve")
         if curve:
-            curves[f"{arm} ({run['label']})"] = curve
+            curves[f"{arm} ({run.label})"] = curve
     if curves:
         figures["curves"] = plot_curves(curves, out.parent / f"{stem}_curves.png")
 
     points: dict[str, list[tuple[int, float, float]]] = {}
     for tab in [table, *extra.values()]:
-        for arm, row in tab["arms"].items():
-            main_row = table["arms"].get(arm)
-            if main_row is None or row["overall"]["n"] != main_row["overall"]["n"]:
+        for arm, row in tab.arms.items():
+            main_row = table.arms.get(arm)
+            if main_row is None or row.overall.n != main_row.overall.n:
                 continue  # only budget variants of the comparison's own arms and seeds
-            steps = _trained_with(workspace, row["runs"][0]["checkpoint_id"], "steps")
+            steps = _trained_with(workspace, row.runs[0].checkpoint_id, "steps")
             if steps:
-                points.setdefault(arm, []).append((steps, row["overall"]["mean"], row["overall"]["std"]))
+                points.setdefault(arm, []).append((steps, row.overall.mean, row.overall.std))
     if len({p[0] for rows in points.values() for p in rows}) > 1:
         figures["convergence"] = plot_convergence(points, out.parent / f"{stem}_convergence.png")
 
@@ -214,11 +211,11 @@ def write_report(
 
     runs = ["| run | checkpoint | evaluation | success |", "|---|---|---|---|"]
     for tab in [table, *extra.values()]:
-        for row in tab["arms"].values():
-            for run in row["runs"]:
+        for row in tab.arms.values():
+            for run in row.runs:
                 runs.append(
-                    f"| {run['label']} | `{run['checkpoint_id'][:12]}` | `{run['evaluation_id'][:12]}` | "
-                    f"{100 * run['mean_success']:.1f}% |"
+                    f"| {run.label} | `{run.checkpoint_id[:12]}` | `{run.evaluation_id[:12]}` | "
+                    f"{100 * run.mean_success:.1f}% |"
                 )
     # Rendered here, with the measured speeds from the training records: a report's content (its id)
     # holds only what its checkpoints and scores determine, so its own `markdown` has no timings.

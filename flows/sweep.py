@@ -10,6 +10,7 @@ from typing import Any
 
 from prefect import flow
 
+from artifacts.scores import read_scores
 from flows.config import ARMS, PipelineConfig
 from flows.pipeline import step_runner, submit_arm, submit_vector_stage
 from flows.runs import publish_markdown, recorded_run
@@ -46,18 +47,18 @@ def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
                 cells.append(
                     {"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation}
                 )
-        rows = []
-        for cell in cells:
-            eval_id = cell["evaluation"].result()
-            rows.append(
-                {
-                    "alpha": cell["alpha"],
-                    "lambda": cell["lambda"],
-                    "checkpoint_id": cell["checkpoint"].result(),
-                    "evaluation_id": eval_id,
-                    "validation_success": workspace.api.get(eval_id).config["mean_success"],
-                }
-            )
+        eval_ids = [cell["evaluation"].result() for cell in cells]
+        scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=eval_ids)}
+        rows = [
+            {
+                "alpha": cell["alpha"],
+                "lambda": cell["lambda"],
+                "checkpoint_id": cell["checkpoint"].result(),
+                "evaluation_id": eval_id,
+                "validation_success": scores[eval_id].mean_success,
+            }
+            for cell, eval_id in zip(cells, eval_ids, strict=True)
+        ]
         best = max(rows, key=lambda r: r["validation_success"])
         doc = {"arm": arm, "seed": seed, "grid": rows, "best": best, "selected_on": "validation seeds"}
         record = workspace.api.register_json(

@@ -6,6 +6,7 @@ from typing import Any
 
 from prefect.artifacts import create_table_artifact
 
+from artifacts.scores import read_scores
 from capvector_core.evaluation import EvalConfig, EvalResult, evaluate
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
@@ -19,7 +20,9 @@ def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, A
 
     Its content, hence its id: what the checkpoint, the protocol and the library versions determine,
     nothing else. When it ran, how long it took, where videos were written are provenance and go into
-    the record's config (its sidecar), never here, so one evaluation run twice has one id."""
+    the record's config (its sidecar), never here, so one evaluation run twice has one id. Its scores
+    are not in the sidecar either: the catalogue derives them from these episodes
+    (artifacts.scores)."""
     return {
         "checkpoint_id": checkpoint_id,
         "fingerprint": result.fingerprint,
@@ -52,16 +55,15 @@ def evaluate_checkpoint(
             "eval": eval_config.model_dump(mode="json"),
             "policy_form": form.model_dump(mode="json"),
             "protocol": result.protocol,
-            "mean_success": result.mean_success,
-            "success_rates": result.success_rates,
             "wall_time_s": result.wall_time_s,
             "env_steps": result.env_steps,
             "cache_key": cache_key,
         },
         **meta,
     )
+    (scores,) = read_scores(workspace.api, evaluations=[record.id])  # as every other reader sees them
     create_table_artifact(
-        table=[{"task": t, "success_rate": r} for t, r in sorted(result.success_rates.items())],
+        table=[{"task": t, "success_rate": r} for t, r in sorted(scores.success_rates.items())],
         key=f"evaluation-{record.id[:12]}",
         description=f"{step}: checkpoint {checkpoint_id[:12]}, protocol {result.fingerprint[:12]}",
     )

@@ -22,6 +22,7 @@ from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
 from artifacts.api import ArtifactsAPI
+from artifacts.scores import read_scores
 from capvector_core.safetensors_io import Checkpoint
 from flows.cli import app
 
@@ -325,16 +326,15 @@ def test_scores_compare_and_report(smoke_home, tmp_path):
     api = ArtifactsAPI(str(home))
     capvector, sft = ids["checkpoints"]["capvector/seed0"], ids["checkpoints"]["sft/seed0"]
     evaluation = api.get(ids["evaluations"]["capvector/seed0"])
-    protocol = api.store.open_json(evaluation.id)["fingerprint"]  # other tests add other protocols
+    (scores,) = read_scores(api, evaluations=[evaluation.id])
+    protocol = scores.fingerprint  # other tests add other protocols
 
     rows = json.loads(invoke(home, "scores", capvector, "--fingerprint", protocol, "--json").stdout)
     mine = [r for r in rows if r["evaluation_id"] == evaluation.id]
     assert [(r["checkpoint_id"], r["task"], r["n_episodes"], r["depth"]) for r in mine] == [
         (capvector, "button-press-topdown-v3", 2, 0)
     ]
-    assert mine[0]["success_rate"] == pytest.approx(
-        evaluation.config["success_rates"]["button-press-topdown-v3"]
-    )
+    assert mine[0]["success_rate"] == scores.success_rates["button-press-topdown-v3"]
     fingerprint = mine[0]["fingerprint"]
 
     png = tmp_path / "x.png"
@@ -345,7 +345,7 @@ def test_scores_compare_and_report(smoke_home, tmp_path):
     )
     assert [r["checkpoint_id"] for r in result["rows"]] == [capvector, sft]
     assert result["fingerprint"] == fingerprint
-    assert result["rows"][0]["success_rates"] == evaluation.config["success_rates"]
+    assert result["rows"][0]["success_rates"] == scores.success_rates
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     out = tmp_path / "tmp" / "results.md"

@@ -14,6 +14,7 @@ from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
 from artifacts.api import ArtifactsAPI
+from artifacts.scores import read_scores
 from capvector_core.demos import VALIDATION_SEED_BASE
 from flows.config import load_config
 from flows.pipeline import pipeline
@@ -184,7 +185,8 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
     for row in result["grid"]:
         evaluation = api.get(row["evaluation_id"]).config
         assert evaluation["eval"]["seed_base"] == VALIDATION_SEED_BASE  # never the test seeds
-        assert evaluation["mean_success"] == row["validation_success"]
+        (scores,) = read_scores(api, evaluations=[row["evaluation_id"]])
+        assert scores.mean_success == row["validation_success"]
     # α = 1.1, λ = 1e-4 is the preset's own CapVector arm: the sweep reuses the pipeline's checkpoint
     assert result["grid"][1]["checkpoint_id"] == ids["checkpoints"]["capvector/seed0"]
     assert result["grid"][0]["checkpoint_id"] not in ids["checkpoints"].values()

@@ -1,0 +1,171 @@
+"""A score lives in one place: the evaluation's document, read through the catalogue (artifacts.scores).
+
+Evaluations recorded before this carried `mean_success`/`success_rates` in their sidecar config. Here
+such sidecars hold deliberately wrong copies, so any reader still using them would show 0 %.
+"""
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from artifacts.api import ArtifactsAPI
+from artifacts.scores import read_scores
+from flows.cli import app
+from flows.comparison import compare_checkpoints
+from flows.evaluation_flows import _latest_scores
+from flows.report import write_report
+from tasks.reporting import ReportRun, comparison, load_report, run_report
+from tasks.workspace import Workspace
+
+REACH, DRAWER = "reach-v3", "drawer-close-v3"
+STALE = {"success_rates": {REACH: 0.0, DRAWER: 0.0}, "mean_success": 0.0, "wall_time_s": 1.0}
+
+
+def _episodes(successes: dict[str, list[bool]]) -> list[dict]:
+    return [
+        {"task": task, "seed": 100000 + i, "success": ok, "steps": 5, "return": float(ok)}
+        for task, oks in successes.items()
+        for i, ok in enumerate(oks)
+    ]
+
+
+def _evaluate(
+    api: ArtifactsAPI, checkpoint: str, successes: dict[str, list[bool]], fp: str = "f" * 64
+) -> str:
+    doc = {"checkpoint_id": checkpoint, "fingerprint": fp, "episodes": _episodes(successes)}
+    return api.register_evaluation(doc, name="evaluate", config=STALE).id
+
+
+def _checkpoint(api: ArtifactsAPI, name: str) -> str:
+    config = {"summary": {"steps": 20, "steps_per_s": 10.0, "trainable_parameters": 123}}
+    return api.register_json({"w": name}, "checkpoint", name, config=config).id
+
+
+@pytest.fixture
+def scored(tmp_path):
+    """Checkpoints A 75 % (reach 1/2, drawer 2/2) and B 25 % (reach 0/2, drawer 1/2), one evaluation each."""
+    ws = Workspace(str(tmp_path / "home"))
+    a, b = _checkpoint(ws.api, "A"), _checkpoint(ws.api, "B")
+    eval_a = _evaluate(ws.api, a, {REACH: [True, False], DRAWER: [True, True]})
+    eval_b = _evaluate(ws.api, b, {REACH: [False, False], DRAWER: [False, True]})
+    return ws, {"A": a, "B": b, "eval_A": eval_a, "eval_B": eval_b}
+
+
+def cli(home, *args: str, code: int = 0):
+    result = CliRunner().invoke(app, ["--home", str(home), *args])
+    assert result.exit_code == code, (result.output, result.exception)
+    return result
+
+
+def test_read_scores_derives_from_the_document_not_the_sidecar(scored):
+    ws, ids = scored
+    assert ws.api.get(ids["eval_A"]).config["mean_success"] == 0.0  # the stale copy is there
+    (a,) = read_scores(ws.api, evaluations=[ids["eval_A"]])
+    assert (a.checkpoint_id, a.fingerprint) == (ids["A"], "f" * 64)
+    assert a.success_rates == {DRAWER: 1.0, REACH: 0.5} and a.mean_success == 0.75
+    assert a.episodes == {DRAWER: 2, REACH: 2}
+    by_checkpoint = read_scores(ws.api, checkpoints=[ids["B"], ids["A"]])
+    assert {s.evaluation_id: s.mean_success for s in by_checkpoint} == {
+        ids["eval_A"]: 0.75,
+        ids["eval_B"]: 0.25,
+    }
+    with pytest.raises(ValueError, match="is a checkpoint, not an evaluation"):
+        read_scores(ws.api, evaluations=[ids["A"]])
+
+
+def test_every_reader_reports_the_documents_score_and_they_agree(scored, tmp_path):
+    ws, ids = scored
+    home = ws.home
+    expected = {ids["A"]: {DRAWER: 1.0, REACH: 0.5}, ids["B"]: {DRAWER: 0.5, REACH: 0.0}}
+
+    report_id = run_report(ws, "report", {"A/seed0": ids["eval_A"], "B/seed0": ids["eval_B"]}, {"name": "t"})
+    report = load_report(ws, report_id)
+    assert {r.checkpoint_id: r.success_rates for row in report.arms.values() for r in row.runs} == expected
+    assert report.arms["A"].overall.mean == 0.75 and report.arms["B"].per_task[DRAWER].mean == 0.5
+    assert "| A | 75.0 ± 0.0 | 100.0 ± 0.0 | 50.0 ± 0.0 |" in report.markdown
+
+    text = write_report(ws, report_id, tmp_path / "out" / "report.md").read_text()
+    assert f"| A/seed0 | `{ids['A'][:12]}` | `{ids['eval_A'][:12]}` | 75.0% |" in text
+    assert f"| B/seed0 | `{ids['B'][:12]}` | `{ids['eval_B'][:12]}` | 25.0% |" in text
+
+    compared = json.loads(cli(home, "compare", ids["A"][:12], ids["B"], "--json").stdout)
+    assert {r["checkpoint_id"]: r["success_rates"] for r in compared["rows"]} == expected
+    assert [r["mean"] for r in compared["rows"]] == [0.75, 0.25] and compared["fingerprint"] == "f" * 64
+    assert "75.0%" in cli(home, "compare", ids["A"], ids["B"]).stdout
+
+    for checkpoint in (ids["A"], ids["B"]):
+        rows = json.loads(cli(home, "scores", checkpoint, "--json").stdout)
+        assert {r["task"]: r["success_rate"] for r in rows} == expected[checkpoint]
+        assert _latest_scores(ws, checkpoint) == {"f" * 64: expected[checkpoint]}  # reevaluate's "previous"
+
+
+def test_catalogue_rebuild_derives_the_scores_again(scored):
+    ws, ids = scored
+    before = read_scores(ws.api, checkpoints=[ids["A"], ids["B"]])
+    ws.api.catalogue.path.unlink()
+    assert read_scores(ArtifactsAPI(ws.home), checkpoints=[ids["A"], ids["B"]]) == before  # caught up on open
+    out = json.loads(cli(ws.home, "catalogue", "rebuild", "--json").stdout)
+    assert out["artifacts"] == 4 and out["corrupt"] == []
+    assert read_scores(ArtifactsAPI(ws.home), checkpoints=[ids["A"], ids["B"]]) == before
+    assert [s.mean_success for s in before] == [0.75, 0.25]
+
+
+def test_an_evaluation_without_a_row_yet_is_read_from_its_document(scored):
+    """Registered by another process while the catalogue was locked: the sidecar is committed, the row
+    waits. A reader in this process must not fail or fall back to the sidecar."""
+    ws, ids = scored
+    doc = {"checkpoint_id": ids["B"], "fingerprint": "e" * 64, "episodes": _episodes({REACH: [True, True]})}
+    late = ws.api.store.put_json(doc, "evaluation", "late", STALE, [(ids["B"], "checkpoint")]).id
+    assert ws.api.query("SELECT count(*) n FROM eval_tasks WHERE evaluation_id = ?", [late])["n"][0] == 0
+    (score,) = read_scores(ws.api, evaluations=[late])
+    assert (score.success_rates, score.episodes, score.fingerprint) == ({REACH: 1.0}, {REACH: 2}, "e" * 64)
+
+
+def test_mixed_protocols_are_refused(scored):
+    ws, ids = scored
+    other = _evaluate(ws.api, ids["B"], {REACH: [True]}, fp="e" * 64)
+    with pytest.raises(ValueError, match="2 different protocols"):
+        comparison(ws, {"A/seed0": ids["eval_A"], "B/seed0": other})
+    with pytest.raises(ValueError, match="share 0 evaluation protocols"):
+        compare_checkpoints(ws, [ids["B"], _checkpoint(ws.api, "never evaluated")], None)
+    _evaluate(ws.api, ids["A"], {REACH: [True]}, fp="e" * 64)
+    with pytest.raises(ValueError, match="share 2 evaluation protocols"):
+        compare_checkpoints(ws, [ids["A"], ids["B"]], None)
+    result = compare_checkpoints(ws, [ids["A"], ids["B"]], "e" * 8)
+    assert [r.success_rates for r in result.rows] == [{REACH: 1.0}, {REACH: 1.0}]
+
+
+def test_the_stored_report_is_the_model(scored):
+    """Written and read through `Report`: the stored JSON is exactly its dump, and reads back equal."""
+    ws, ids = scored
+    report_id = run_report(ws, "report", {"A/seed0": ids["eval_A"]}, {"name": "t"})
+    stored = ws.api.store.open_json(report_id)
+    assert stored == load_report(ws, report_id).model_dump(mode="json")
+    assert set(stored) == {"fingerprint", "arms", "markdown"}
+    assert set(stored["arms"]["A"]["runs"][0]) == set(ReportRun.model_fields)
+
+
+def test_smoke_run_records_no_score_in_a_sidecar_and_readers_agree(smoke_home):
+    home, ids = smoke_home
+    ws = Workspace(str(home))
+    evaluations = ids["evaluations"]
+    scores = {s.evaluation_id: s for s in read_scores(ws.api, evaluations=evaluations.values())}
+    report = load_report(ws, ids["report"])
+    for label, eval_id in evaluations.items():
+        config = ws.api.get(eval_id).config
+        assert not {"mean_success", "success_rates"} & set(config), config
+        arm = report.arms[label.split("/")[0]]
+        (run,) = [r for r in arm.runs if r.evaluation_id == eval_id]
+        assert (run.success_rates, run.mean_success) == (
+            scores[eval_id].success_rates,
+            scores[eval_id].mean_success,
+        )
+    checkpoints = [ids["checkpoints"][label] for label in evaluations]
+    fingerprint = scores[evaluations["sft/seed0"]].fingerprint
+    compared = compare_checkpoints(ws, checkpoints, fingerprint)
+    for row in compared.rows:
+        latest = [
+            s for s in read_scores(ws.api, checkpoints=[row.checkpoint_id]) if s.fingerprint == fingerprint
+        ]
+        assert row.success_rates == latest[-1].success_rates
