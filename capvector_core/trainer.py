@@ -25,10 +25,8 @@ import math
 import os
 import re
 import shutil
-import sys
 import time
-from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -215,44 +213,8 @@ def _param_groups(params: list[nn.Parameter], weight_decay: float) -> list[dict]
     return [{"params": decay, "weight_decay": weight_decay}, {"params": rest, "weight_decay": 0.0}]
 
 
-ProgressReport = Callable[[int, str], None]
-
-
-@contextmanager
-def _progress(enabled: bool, label: str, total: int, start: int) -> Iterator[ProgressReport | None]:
-    """Yields report(step, loss_text), on stderr (stdout may carry data, e.g. `capvector run --json`).
-
-    A rich bar on a terminal. Written to a log file, CI or a pipe, rich draws the bar only once
-    it is finished, so a long run would look stuck: there, a plain line every tenth of the run.
-    """
-    if not enabled:
-        yield None
-        return
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    if not console.is_terminal:
-        yield _line_reporter(label, total)
-        return
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    columns = (TextColumn(label), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[loss]}"))
-    with Progress(*columns, TimeRemainingColumn(), console=console) as bar:
-        task = bar.add_task(label, total=total, completed=start, loss="")
-        yield lambda step, loss: bar.update(task, completed=step, loss=loss)
-
-
-def _line_reporter(label: str, total: int) -> ProgressReport:
-    last_tenth = -1
-
-    def report(step: int, loss: str) -> None:
-        nonlocal last_tenth
-        tenth = (10 * step) // max(total, 1)
-        if tenth != last_tenth:
-            last_tenth = tenth
-            print(f"[{label}] {step}/{total} steps, {loss}", file=sys.stderr, flush=True)
-
-    return report
+# report(done_steps, total_steps, detail): the caller decides where progress goes (tasks.progress)
+ProgressReport = Callable[[int, int, str], None]
 
 
 def train(
@@ -261,8 +223,7 @@ def train(
     config: TrainConfig,
     run_dir: str | Path,
     extra_losses: Mapping[str, ExtraLoss] | None = None,
-    progress: bool = True,
-    progress_label: str = "train",
+    progress: ProgressReport | None = None,
 ) -> TrainResult:
     """Train ``policy`` in place on ``dataset`` (a DemoDataset: ``.tensors``, ``.meta.tasks/.instructions``).
 
@@ -321,7 +282,9 @@ def train(
     last_loss = float("nan")
     t_start = time.perf_counter()
     t_segment = t_start
-    with _progress(progress, progress_label, config.steps, start) as report, open(curve_path, "a") as curve:
+    if progress is not None:
+        progress(run.step, config.steps, "resumed" if run.step else "started")
+    with open(curve_path, "a") as curve:
         while run.step < config.steps:
             step = run.step
             lr = lr_at(step, config)
@@ -371,8 +334,8 @@ def train(
                 last_loss = means[0]
                 window.zero_()
                 window_count = 0
-                if report is not None:
-                    report(run.step, f"loss {last_loss:.4f}")
+                if progress is not None:
+                    progress(run.step, config.steps, f"loss {last_loss:.4f}")
             if run.step % config.checkpoint_every == 0 or done:
                 run.train_seconds += time.perf_counter() - t_segment
                 curve.flush()

@@ -43,8 +43,13 @@ class State:
     debug: bool = os.environ.get("CAPVECTOR_DEBUG", "").lower() not in ("", "0", "false")
 
 
+# Commands that run a flow: they get the run's one Prefect API server (flows.run_server).
+FLOW_COMMANDS = {"run", "evaluate", "reevaluate", "sweep", "schedule"}
+
+
 @app.callback()
 def main_options(
+    ctx: typer.Context,
     home: Annotated[
         str | None, typer.Option("--home", envvar="CAPVECTOR_HOME", help="capvector home")
     ] = None,
@@ -58,6 +63,10 @@ def main_options(
     State.debug = State.debug or debug
     if State.debug:
         os.environ["CAPVECTOR_DEBUG"] = "1"  # step workers inherit it
+    if ctx.invoked_subcommand in FLOW_COMMANDS:
+        from flows.run_server import start_run_server
+
+        start_run_server()  # boots while the command imports torch and the flows
 
 
 def _home(home: str | None) -> str:
@@ -67,21 +76,34 @@ def _home(home: str | None) -> str:
 
 
 def _workspace(home: str | None):
-    from tasks.workspace import Workspace
+    from tasks.workspace import workspace_for
 
-    return Workspace(_home(home))
+    return workspace_for(_home(home))
 
 
 def _print_json(data: Any) -> None:
     console.print_json(json.dumps(data, default=str))
 
 
-def _preflight() -> None:
-    """Before any flow: a configured but unreachable Prefect server is an error, not a hang."""
-    from flows.schedules import check_server_reachable
+def _preflight(command: str, home: str | None) -> None:
+    """Before any flow: progress goes to a log file as well as the terminal; the run's Prefect server
+    is up (a configured but unreachable one is an error naming its address, not a hang)."""
+    from flows.run_server import wait_for_api
     from tasks.prefect_task import quiet_failed_run_logs
+    from tasks.progress import LOG_FILE_ENV, emit
 
-    check_server_reachable()
+    if not os.environ.get(LOG_FILE_ENV):  # step workers inherit it
+        from datetime import UTC, datetime
+
+        from tasks.workspace import workspace_for
+
+        logs = workspace_for(_home(home)).local_root / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        slug = "-".join(command.replace("--preset", "").split())
+        os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
+    emit(f"capvector {command}: home {_home(home)}, log {os.environ[LOG_FILE_ENV]}")
+    wait_for_api()
     quiet_failed_run_logs()  # main() prints a failing run's error, in one line
 
 
@@ -114,19 +136,18 @@ def run(
     from flows.config import load_config
     from flows.pipeline import pipeline
 
-    _preflight()
     config = load_config(preset, overrides)
     home = _home(home)
-    err.print(f"[bold]capvector run[/] preset={preset} home={home}")
+    _preflight(f"run --preset {preset}", home)
     ids = pipeline(config.model_dump(mode="json"), home)
     if as_json:
         _print_json(ids)
         return
-    from tasks.reporting import markdown_table, timings
+    from tasks.reporting import load_report, markdown_table, timings
 
     workspace = _workspace(home)
-    table = workspace.api.store.open_json(ids["report"])
-    console.print(markdown_table(table, timings(workspace, table)))  # speeds: from the records
+    report = load_report(workspace, ids["report"])
+    console.print(markdown_table(report, timings(workspace, report)))  # speeds: from the records
     console.print(f"report: {ids['report']}   (capvector report {ids['report'][:12]})")
 
 
@@ -149,7 +170,7 @@ def evaluate(
     from capvector_core.evaluation import EvalConfig
     from flows.evaluation_flows import evaluate_flow
 
-    _preflight()
+    _preflight("evaluate", home)
     config = EvalConfig(
         tasks=[t.strip() for t in tasks.split(",") if t.strip()],
         episodes_per_task=episodes,
@@ -188,7 +209,7 @@ def reevaluate(
     """Re-run the evaluations of the selected checkpoints under the installed library versions."""
     from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
 
-    _preflight()
+    _preflight("reevaluate", home)
     changes = reevaluate_flow(_home(home), query or DEFAULT_SELECTION)
     if as_json:
         _print_json(changes)
@@ -207,8 +228,8 @@ def sweep(
     from flows.config import load_config
     from flows.sweep import sweep_flow, sweep_markdown
 
-    _preflight()
     config = load_config(preset, overrides)
+    _preflight(f"sweep --preset {preset}", home)
     result = sweep_flow(config.model_dump(mode="json"), _home(home))
     if as_json:
         _print_json(result)

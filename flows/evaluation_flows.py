@@ -9,25 +9,27 @@ from prefect import flow
 from artifacts.scores import read_scores
 from capvector_core.evaluation import EvalConfig
 from flows.runs import publish_markdown, recorded_run
+from flows.steps import StepRunner, resolve
 from tasks.evaluation import evaluate_task, reevaluate_task
-from tasks.workspace import Workspace
+from tasks.workspace import Workspace, workspace_for
 
 # Checkpoints with at least one evaluation, and the protocols they were evaluated under.
 DEFAULT_SELECTION = "SELECT DISTINCT checkpoint_id FROM eval_tasks"
 
 
-@flow(name="evaluate", log_prints=True)
+@flow(name="evaluate", log_prints=True, persist_result=False)
 def evaluate_flow(home: str, checkpoint_ids: list[str], config: dict[str, Any]) -> dict[str, str]:
     """Evaluate each checkpoint under one protocol (cached: the same checkpoint and protocol run once)."""
-    workspace = Workspace(home)
+    workspace = workspace_for(home)
     eval_config = EvalConfig.model_validate(config).model_dump(mode="json")
     full_ids = [workspace.api.get(i).id for i in checkpoint_ids]  # unknown ids fail before any work
     with recorded_run(workspace, "evaluate", {"checkpoints": full_ids, "config": eval_config}):
+        steps = StepRunner(home, len(full_ids), "evaluate")
         futures = {
-            cid: evaluate_task.submit(home, f"evaluate {cid[:12]}", {"checkpoint": cid}, eval_config)
+            cid: steps.submit(evaluate_task, f"evaluate {cid[:12]}", {"checkpoint": cid}, eval_config)
             for cid in full_ids
         }
-        return {cid: f.result() for cid, f in futures.items()}
+        return {cid: resolve(f) for cid, f in futures.items()}
 
 
 def _previous_protocols(workspace: Workspace, checkpoint_id: str) -> list[dict[str, Any]]:
@@ -48,7 +50,7 @@ def _latest_scores(workspace: Workspace, checkpoint_id: str) -> dict[str, dict[s
     return {s.fingerprint: s.success_rates for s in read_scores(workspace.api, checkpoints=[checkpoint_id])}
 
 
-@flow(name="reevaluate", log_prints=True)
+@flow(name="reevaluate", log_prints=True, persist_result=False)
 def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[dict[str, Any]]:
     """Re-run every (checkpoint, protocol) the selection yields under the installed library versions.
 
@@ -57,7 +59,7 @@ def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[d
     The summary lists, per checkpoint and task, the previous and the new success rate under the same
     protocol fingerprint (the previous ones read before anything ran).
     """
-    workspace = Workspace(home)
+    workspace = workspace_for(home)
     selected = workspace.api.query(selection_sql)
     if selected.empty:
         return []

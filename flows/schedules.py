@@ -25,22 +25,10 @@ def build_deployment(cron: str, home: str, query: str | None, name: str) -> Any:
     )
 
 
-def check_server_reachable() -> None:
-    """With PREFECT_API_URL set, fail early with its address when the server does not answer."""
-    import os
-    import urllib.request
-
-    url = os.environ.get("PREFECT_API_URL")
-    if not url:
-        return
-    try:
-        urllib.request.urlopen(url.rstrip("/") + "/health", timeout=5).read()
-    except OSError as exc:
-        raise ValueError(f"the Prefect server at PREFECT_API_URL={url} is not reachable: {exc}") from None
-
-
 def serve_deployment(deployment: Any) -> None:
     from prefect import serve
 
-    check_server_reachable()
+    from flows.run_server import wait_for_api
+
+    wait_for_api()
     serve(deployment)

@@ -12,26 +12,30 @@ from prefect import flow
 
 from artifacts.scores import read_scores
 from flows.config import ARMS, PipelineConfig
-from flows.pipeline import step_runner, submit_arm, submit_vector_stage
+from flows.pipeline import step_runner, submit_arm, submit_vector_stage, vector_stage_steps
 from flows.runs import publish_markdown, recorded_run
+from flows.steps import StepRunner, resolve
 from tasks.evaluation import evaluate_task
 from tasks.vectors import merge_task
-from tasks.workspace import Workspace, provenance
+from tasks.workspace import provenance, workspace_for
 
 
-@flow(name="sweep", log_prints=True, task_runner=step_runner())
+@flow(name="sweep", log_prints=True, task_runner=step_runner(), persist_result=False)
 def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
     cfg = PipelineConfig.model_validate(config)
-    workspace = Workspace(home)
+    workspace = workspace_for(home)
     arm, seed = cfg.sweep.arm, cfg.seeds[0]
     lambdas = cfg.sweep.lambdas if ARMS[arm].orthogonal else [None]
+    cells_total = len(cfg.sweep.alphas) * len(lambdas)
+    total = vector_stage_steps() + len(cfg.sweep.alphas) + 2 * cells_total
+    steps = StepRunner(home, total, f"sweep {cfg.name}")
     with recorded_run(workspace, "sweep", {"config": config, "home": home}):
-        stage = submit_vector_stage(home, cfg)
+        stage = submit_vector_stage(steps, cfg)
         validation = cfg.eval_config(validation=True).model_dump(mode="json")
         cells = []
         for alpha in cfg.sweep.alphas:
-            meta = merge_task.submit(
-                home,
+            meta = steps.submit(
+                merge_task,
                 f"merge θ_meta (α={alpha})",
                 {"base": stage["pretrained"], "vector": stage["vector"]},
                 cfg.merge_config(alpha).model_dump(mode="json"),
@@ -39,21 +43,21 @@ def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
             for lam in lambdas:
                 label = f"{arm} α={alpha} λ={lam}"
                 checkpoint = submit_arm(
-                    home, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label
+                    steps, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label
                 )
-                evaluation = evaluate_task.submit(
-                    home, f"validate {label}", {"checkpoint": checkpoint}, validation
+                evaluation = steps.submit(
+                    evaluate_task, f"validate {label}", {"checkpoint": checkpoint}, validation
                 )
                 cells.append(
                     {"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation}
                 )
-        eval_ids = [cell["evaluation"].result() for cell in cells]
+        eval_ids = [resolve(cell["evaluation"]) for cell in cells]
         scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=eval_ids)}
         rows = [
             {
                 "alpha": cell["alpha"],
                 "lambda": cell["lambda"],
-                "checkpoint_id": cell["checkpoint"].result(),
+                "checkpoint_id": resolve(cell["checkpoint"]),
                 "evaluation_id": eval_id,
                 "validation_success": scores[eval_id].mean_success,
             }

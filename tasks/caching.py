@@ -31,6 +31,23 @@ from tasks.workspace import Workspace
 
 # What `cached_step` did, per call, inside a `step_outcomes()` block: "cached" or "produced".
 _outcomes: ContextVar[list[str] | None] = ContextVar("capvector_step_outcomes", default=None)
+# Inside `probing()`, `cached_step` answers from the cache or raises NotCached; it never produces.
+_probing: ContextVar[bool] = ContextVar("capvector_cache_probe", default=False)
+
+
+class NotCached(LookupError):
+    """Raised by `cached_step` inside `probing()` when the step would have to run."""
+
+
+@contextmanager
+def probing() -> Iterator[None]:
+    """Run a step function only as far as its cache lookup: the flow asks whether a step is a hit
+    without repeating how each step builds its key."""
+    token = _probing.set(True)
+    try:
+        yield
+    finally:
+        _probing.reset(token)
 
 
 @contextmanager
@@ -114,6 +131,8 @@ def cached_step(
     if existing is not None:
         _record("cached")
         return existing
+    if _probing.get():
+        raise NotCached(key)
     artifact_id = produce(key)
     remember(workspace, key, artifact_id)
     _record("produced")

@@ -8,7 +8,7 @@ from capvector_core.demos import DemoConfig, collect_demos
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
 from tasks.progress import progress_printer
-from tasks.workspace import Workspace, provenance
+from tasks.workspace import Workspace, provenance, workspace_for
 
 
 def run_collect_demos(workspace: Workspace, step: str, config: dict[str, Any]) -> str:
@@ -37,4 +37,4 @@ def run_collect_demos(workspace: Workspace, step: str, config: dict[str, Any]) -
 
 @pipeline_task("collect_demos")
 def collect_demos_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_collect_demos(Workspace(home), step, config)
+    return run_collect_demos(workspace_for(home), step, config)

@@ -88,7 +88,7 @@ def evaluate_task(home: str, step: str, inputs: dict[str, str], config: dict[str
     return run_evaluate(Workspace(home), step, inputs, config)
 
 
-@pipeline_task("reevaluate")
+@pipeline_task("reevaluate", content_cached=False)
 def reevaluate_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     """Always re-runs: the cache key has a fresh nonce unless this exact run already landed."""
     return evaluate_checkpoint(Workspace(home), step, inputs["checkpoint"], config)

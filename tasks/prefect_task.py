@@ -35,7 +35,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed
 
-from tasks.caching import step_outcomes
+from tasks.caching import NotCached, probing, step_outcomes
 
 WATCHDOG_PERIOD_S = 0.25
 PR_SET_PDEATHSIG = 1
@@ -48,11 +48,14 @@ class RunAbandoned(RuntimeError):
     """This worker's run is gone (its CLI died): it must not start or commit anything."""
 
 
-def pipeline_task(name: str, retries: int = 0) -> Callable[[Callable[..., Any]], Any]:
+def pipeline_task(
+    name: str, retries: int = 0, content_cached: bool = True
+) -> Callable[[Callable[..., Any]], Any]:
     """A Prefect task `(home, step, inputs, config) -> artifact id`, cached on content.
 
     The task-run name is the step label, so the UI reads like the recipe; tensors never travel
     through Prefect. A step whose artifact came from the content cache finishes as `Cached`.
+    `content_cached=False`: a step that always runs (re-evaluation), so `cached_id` never asks it.
     """
 
     def decorate(fn: Callable[..., str]) -> Any:
@@ -69,7 +72,17 @@ def pipeline_task(name: str, retries: int = 0) -> Callable[[Callable[..., Any]],
                 return Completed(name="Cached", data=artifact_id, message=f"content cache: {artifact_id}")
             return artifact_id
 
-        return task(
+        def cached_id(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str | None:
+            """The step's artifact id when the content cache holds it, else None; computes nothing."""
+            if not content_cached:
+                return None
+            try:
+                with probing():
+                    return fn(home, step, inputs, config)
+            except NotCached:
+                return None
+
+        prefect_task = task(
             name=name,
             cache_policy=NO_CACHE,
             persist_result=False,
@@ -77,6 +90,8 @@ def pipeline_task(name: str, retries: int = 0) -> Callable[[Callable[..., Any]],
             task_run_name="{step}",
             retries=retries,
         )(run_step)
+        prefect_task.cached_id = cached_id
+        return prefect_task
 
     return decorate
 

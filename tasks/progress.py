@@ -1,29 +1,55 @@
-"""Progress lines for long steps that run inside Prefect tasks (possibly several at once).
+"""Progress of a run and of its long steps, on the user's terminal and in the run's log file alike.
 
-Rich live bars from concurrent threads overwrite each other, so steps print a short line at
-every 10% instead; the trainer's own bar is used when one step runs alone.
+Lines go to file descriptor 2, not through `print`: inside a Prefect task `print` becomes a run-log
+record (dropped below PREFECT_LOGGING_LEVEL), which is why progress from pool workers never reached
+a redirected `make run > run.log`. Every process of a run (the CLI, its step workers) appends to the
+log file the CLI names in CAPVECTOR_LOG_FILE; each line is one `write` on an O_APPEND descriptor, so
+lines of concurrent workers never interleave within a line. One line per tenth of a step's work:
+live bars from several processes would overwrite each other.
 """
 
 from __future__ import annotations
 
 import os
-import sys
+import time
 from collections.abc import Callable
+
+LOG_FILE_ENV = "CAPVECTOR_LOG_FILE"
+QUIET_ENV = "CAPVECTOR_QUIET"
+
+# done, total, and an optional detail such as the current loss
+ProgressCallback = Callable[..., None]
 
 
 def quiet() -> bool:
-    return os.environ.get("CAPVECTOR_QUIET", "") not in ("", "0")
+    return os.environ.get(QUIET_ENV, "") not in ("", "0")
 
 
-def progress_printer(step: str, unit: str) -> Callable[[int, int], None] | None:
-    if quiet():
-        return None
-    last = {"decile": -1}
+def emit(line: str) -> None:
+    """One progress line, time-stamped, to the terminal (unless quiet) and to the run's log file."""
+    data = f"{time.strftime('%H:%M:%S')} {line}\n".encode()
+    if not quiet():
+        try:
+            os.write(2, data)
+        except OSError:  # no stderr (a daemon): the log file still has it
+            pass
+    path = os.environ.get(LOG_FILE_ENV)
+    if path:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, data)
+        finally:
+            os.close(fd)
 
-    def report(done: int, total: int) -> None:
-        decile = (10 * done) // max(total, 1)
-        if decile != last["decile"]:
-            last["decile"] = decile
-            print(f"[{step}] {done}/{total} {unit}", file=sys.stderr, flush=True)
+
+def progress_printer(step: str, unit: str) -> ProgressCallback:
+    """A callback `(done, total, detail="")` that emits a line at every tenth of `total`."""
+    last = {"tenth": -1}
+
+    def report(done: int, total: int, detail: str = "") -> None:
+        tenth = (10 * done) // max(total, 1)
+        if tenth != last["tenth"]:
+            last["tenth"] = tenth
+            emit(f"[{step}] {done}/{total} {unit}" + (f", {detail}" if detail else ""))
 
     return report

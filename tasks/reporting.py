@@ -113,17 +113,13 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> Report:
     return Report(fingerprint=fingerprints.pop() if fingerprints else None, arms=arms)
 
 
-def _as_report(report: Report | dict[str, Any]) -> Report:
-    return report if isinstance(report, Report) else Report.model_validate(report)
-
-
-def timings(workspace: Workspace, report: Report | dict[str, Any]) -> dict[str, dict[str, float | None]]:
+def timings(workspace: Workspace, report: Report) -> dict[str, dict[str, float | None]]:
     """arm -> `ms_per_step` and `train_wall_s`, medians over the arm's runs, from the training records
     (the checkpoints' sidecars): provenance, kept out of the report's content.
 
     Medians: a seed's checkpoint may be a cache hit trained under other load (a sweep cell)."""
     out = {}
-    for arm, row in _as_report(report).arms.items():
+    for arm, row in report.arms.items():
         speeds, walls = [], []
         for run in row.runs:
             summary = workspace.api.get(run.checkpoint_id).config.get("summary", {})
@@ -139,11 +135,8 @@ def timings(workspace: Workspace, report: Report | dict[str, Any]) -> dict[str, 
     return out
 
 
-def markdown_table(
-    report: Report | dict[str, Any], timings: dict[str, dict[str, float | None]] | None = None
-) -> str:
+def markdown_table(report: Report, timings: dict[str, dict[str, float | None]] | None = None) -> str:
     """The comparison as Markdown; with `timings` (see `timings`), two columns of measured speed."""
-    report = _as_report(report)
     if not report.arms:
         return "(no evaluations)\n"
     tasks = sorted(next(iter(report.arms.values())).per_task)

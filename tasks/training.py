@@ -26,8 +26,8 @@ from capvector_core.policy import AnyPolicyConfig, Policy, build_policy, load_po
 from capvector_core.trainer import TrainConfig, train
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
-from tasks.progress import quiet
-from tasks.workspace import Workspace, provenance
+from tasks.progress import progress_printer
+from tasks.workspace import Workspace, provenance, workspace_for
 
 CALIBRATION_BATCHES = 8
 
@@ -128,7 +128,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
         trainable = lora.trainable_parameter_count(model)
         run_dir = workspace.run_dir(key)
         result = train(
-            model, dataset, cfg.train, run_dir, extra_losses=extra, progress=not quiet(), progress_label=step
+            model, dataset, cfg.train, run_dir, extra_losses=extra, progress=progress_printer(step, "steps")
         )
 
         summary = {
@@ -192,4 +192,4 @@ def _curve_rows(path: Path) -> list[dict[str, Any]]:
 
 @pipeline_task("train")
 def train_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_train(Workspace(home), step, inputs, config)
+    return run_train(workspace_for(home), step, inputs, config)

@@ -10,7 +10,7 @@ from capvector_core import vector_ops
 from capvector_core.vector_ops import VectorStat, group_of
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
-from tasks.workspace import Workspace, provenance
+from tasks.workspace import Workspace, provenance, workspace_for
 
 
 class VectorFilter(BaseModel):
@@ -115,9 +115,9 @@ def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: d
 
 @pipeline_task("extract_vector")
 def extract_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_extract(Workspace(home), step, inputs, config)
+    return run_extract(workspace_for(home), step, inputs, config)
 
 
 @pipeline_task("merge")
 def merge_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_merge(Workspace(home), step, inputs, config)
+    return run_merge(workspace_for(home), step, inputs, config)

@@ -83,3 +83,10 @@ def provenance() -> dict[str, Any]:
 
 def _or_none(value: Any) -> str | None:
     return str(value) if value else None
+
+
+@functools.cache
+def workspace_for(home: str) -> Workspace:
+    """The process's one Workspace per home: steps that run in the flow's process or in a pool
+    worker share it, so the catalogue is opened (and migrations checked) once per process."""
+    return Workspace(home)

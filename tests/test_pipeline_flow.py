@@ -65,6 +65,20 @@ def test_cold_run_produces_every_artifact(smoke_home):
     assert episodes["n"][0] == 3 * 2  # arms × episodes
 
 
+def test_progress_of_the_run_and_of_each_long_step_is_in_the_log_file(smoke_home):
+    """The CLI's log file (also written with CAPVECTOR_QUIET, as here) has the pipeline's step k of N
+    and the step workers' demo, training and evaluation lines."""
+    home, _ = smoke_home
+    logs = sorted((home / "logs").glob("run*.log"))
+    assert logs, f"no run log in {home / 'logs'}"
+    text = logs[0].read_text()
+    finished = [line for line in text.splitlines() if "[pipeline smoke " in line and "/15]" in line]
+    assert len(finished) == 15 and all(line.endswith(": done") for line in finished), text
+    for long_step in ("[demos pretrain] 4/4 episodes", "[pretrain θ_pt] 30/30 steps, loss ",
+                      "[evaluate sft/seed0] 2/2 episodes"):  # fmt: skip
+        assert long_step in text, f"{long_step!r} missing from the run log:\n{text}"
+
+
 def test_second_run_hits_every_cache_and_creates_nothing(smoke_home):
     home, ids = smoke_home
     before = _artifact_count(home)
@@ -168,7 +182,9 @@ def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
     wall = summary["steps"] / summary["steps_per_s"]
     # measured times are provenance: in the checkpoint's record, not in the report's content (its id)
     workspace = Workspace(str(tmp_path / "home"))
-    assert reporting.timings(workspace, main)["sft"]["train_wall_s"] == pytest.approx(wall)
+    assert reporting.timings(workspace, reporting.Report.model_validate(main))["sft"]["train_wall_s"] == (
+        pytest.approx(wall)
+    )
     lr = config["downstream"]["lr"]
     assert f"| {summary['trainable_parameters']} | {lr:g} | 1 |" in main["markdown"]
     text = write_report(workspace, ids["report"], tmp_path / "report.md").read_text()

@@ -1,8 +1,8 @@
-"""The step workers a `capvector run` starts die with it, and nothing of a dead run commits afterwards.
+"""A `capvector run` has one Prefect API server, shared by its step workers; the server and the
+workers die with the CLI, and nothing of a dead run commits afterwards.
 
-`kill -9` gives the CLI no chance to clean up, so each worker watches its own parent: it asks the
-kernel for SIGKILL when the CLI dies (Linux) and also polls its parent. Prefect's embedded API servers
-are not bound yet (see tasks/prefect_task.py); the CLI's process group still ends them.
+`kill -9` gives the CLI no chance to clean up, so each child watches its parent: it asks the kernel
+for a signal when the CLI dies (Linux) and the workers also poll their parent.
 """
 
 import os
@@ -77,7 +77,15 @@ def _wait_until(condition, limit_s: float, poll_s: float = 0.2):
     return condition()
 
 
-def test_kill_9_of_capvector_run_leaves_no_worker_and_commits_nothing(tmp_path):
+def _environ(pid: int) -> dict[str, str]:
+    try:
+        raw = Path(f"/proc/{pid}/environ").read_bytes()
+    except OSError:
+        return {}
+    return dict(item.decode(errors="replace").split("=", 1) for item in raw.split(b"\0") if b"=" in item)
+
+
+def test_one_server_per_run_and_kill_9_leaves_no_process_and_commits_nothing(tmp_path):
     home = tmp_path / "home"
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
     proc = subprocess.Popen(
@@ -92,7 +100,11 @@ def test_kill_9_of_capvector_run_leaves_no_worker_and_commits_nothing(tmp_path):
         up = _wait_until(lambda: proc.poll() is not None or len(workers()) >= 2, 300)
         assert proc.poll() is None, "the run ended before its workers were up"
         assert up, f"workers never came up: {_tree(proc.pid)}"
-        tree = workers()
+        tree = _tree(proc.pid)
+        servers = [p for p, (_, cmd) in tree.items() if "uvicorn" in cmd and "prefect.server" in cmd]
+        assert len(servers) == 1, f"expected one Prefect API server in the run, found {servers}: {tree}"
+        urls = {_environ(p).get("PREFECT_API_URL") for p in workers()}
+        assert len(urls) == 1 and None not in urls, f"the workers do not share the run's API: {urls}"
 
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
@@ -100,7 +112,7 @@ def test_kill_9_of_capvector_run_leaves_no_worker_and_commits_nothing(tmp_path):
 
         all_gone = _wait_until(lambda: not [p for p, (t, _) in tree.items() if _alive(p, t)], 10)
         left = {p: cmd[:120] for p, (t, cmd) in tree.items() if _alive(p, t)}
-        assert all_gone, f"workers alive 10 s after kill -9 of the CLI: {left}"
+        assert all_gone, f"processes of the run alive 10 s after kill -9 of the CLI: {left}"
 
         time.sleep(2)  # anything still finishing a step would have written by now
         assert _committed(home) == committed_at_kill, "a step of the killed run committed afterwards"

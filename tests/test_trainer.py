@@ -70,21 +70,20 @@ def curve(path) -> list[dict]:
     return [json.loads(line) for line in Path(path).read_text().splitlines()]
 
 
-def test_progress_on_a_log_file_is_a_line_per_tenth_of_the_run(tmp_path, capfd):
-    """Off a terminal rich draws its bar only when done; a long run must still show it is moving."""
+def test_progress_reports_each_logged_step_with_its_loss(tmp_path):
+    """The trainer only reports; tasks.progress decides where the lines go."""
+    calls = []
     policy = L1ChunkPolicy(L1ChunkConfig(**TINY))
-    train(policy, make_dataset(), quick(steps=20, log_every=1), tmp_path, progress_label="downstream/sft")
-    lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("[downstream/sft]")]
-    steps = [int(line.split()[1].split("/")[0]) for line in lines]
-    assert steps == [1, *range(2, 21, 2)], lines  # the first step says it started
-    assert all(line.endswith(tuple("0123456789")) and "loss " in line for line in lines)
+    train(policy, make_dataset(), quick(steps=20, log_every=5), tmp_path, progress=lambda *a: calls.append(a))
+    assert [(done, total) for done, total, _ in calls] == [(0, 20), (5, 20), (10, 20), (15, 20), (20, 20)]
+    assert calls[0][2] == "started" and all(detail.startswith("loss ") for *_, detail in calls[1:]), calls
 
 
 @pytest.mark.parametrize("policy_type", ["l1_chunk", "flow"])
 def test_loss_decreases_and_outputs_written(tmp_path, policy_type):
     torch.manual_seed(0)
     policy = build_policy({"type": policy_type, **TINY}, "cpu")
-    result = train(policy, make_dataset(), quick(steps=120), tmp_path, progress=False)
+    result = train(policy, make_dataset(), quick(steps=120), tmp_path)
     rows = curve(result.loss_curve_path)
     assert rows[-1]["step"] == 120 and {"loss", "action", "lr", "time", "grad_norm"} <= set(rows[0])
     # flow matching's loss keeps the noise's irreducible variance: it falls less far
@@ -116,19 +115,18 @@ def test_lr_schedule():
 def test_validation_errors(tmp_path):
     policy = L1ChunkPolicy(L1ChunkConfig(**TINY))
     with pytest.raises(ValueError, match=r"batch_size \(500\) is larger than the dataset \(80"):
-        train(policy, make_dataset(), quick(batch_size=500), tmp_path, progress=False)
+        train(policy, make_dataset(), quick(batch_size=500), tmp_path)
     with pytest.raises(ValueError, match=r"'spatial' needs dataset field\(s\) \['privileged'\]"):
         train(
             policy,
             make_dataset(privileged=False),
             quick(aux=AuxConfig(name="spatial")),
             tmp_path,
-            progress=False,
         )
     with pytest.raises(ValueError, match="unknown auxiliary objective 'depth'.*dynamics.*spatial"):
         AuxConfig(name="depth")
     with pytest.raises(ValueError, match="collide"):
-        train(policy, make_dataset(), quick(), tmp_path, extra_losses={"action": lambda m: 0}, progress=False)
+        train(policy, make_dataset(), quick(), tmp_path, extra_losses={"action": lambda m: 0})
 
 
 def test_nan_loss_names_step_and_term(tmp_path):
@@ -140,7 +138,7 @@ def test_nan_loss_names_step_and_term(tmp_path):
         return torch.tensor(float("nan")) if len(calls) == 3 else torch.zeros(())
 
     with pytest.raises(FloatingPointError, match=r"step 2: term\(s\) \['loss', 'bad'\]"):
-        train(policy, make_dataset(), quick(), tmp_path, extra_losses={"bad": sometimes_nan}, progress=False)
+        train(policy, make_dataset(), quick(), tmp_path, extra_losses={"bad": sometimes_nan})
 
 
 def test_extra_loss_hook_is_called_and_logged(tmp_path):
@@ -151,7 +149,7 @@ def test_extra_loss_hook_is_called_and_logged(tmp_path):
         seen.append(model)
         return 1e-3 * sum(p.pow(2).sum() for p in model.action_head.parameters())
 
-    result = train(policy, make_dataset(), quick(steps=10), tmp_path, extra_losses={"l2": l2}, progress=False)
+    result = train(policy, make_dataset(), quick(steps=10), tmp_path, extra_losses={"l2": l2})
     assert len(seen) == 10 and seen[0] is policy
     rows = curve(result.loss_curve_path)
     assert all(r["l2"] > 0 for r in rows)
@@ -165,13 +163,12 @@ def test_pixels_path_trains(tmp_path):
         make_dataset("pixels"),
         quick(steps=6, aux=AuxConfig(name="spatial")),
         tmp_path,
-        progress=False,
     )
     rows = curve(result.loss_curve_path)
     assert rows[-1]["step"] == 6 and "spatial" in rows[-1]
     with pytest.raises(ValueError, match="images are"):
         bigger = L1ChunkConfig(obs_mode="pixels", image_size=32, stem_channels=[8, 16], **TINY)
-        train(L1ChunkPolicy(bigger), make_dataset("pixels"), quick(), tmp_path / "x", progress=False)
+        train(L1ChunkPolicy(bigger), make_dataset("pixels"), quick(), tmp_path / "x")
 
 
 RUNNER = textwrap.dedent(
@@ -186,7 +183,7 @@ RUNNER = textwrap.dedent(
     policy = build_policy({{"type": sys.argv[2], "dropout": 0.1, **TINY}}, "cpu")
     aux = AuxConfig(name="dynamics", params={{"horizon": 3}})
     cfg = quick(steps=300, checkpoint_every=25, seed=7, aux=aux)
-    train(policy, make_dataset(), cfg, sys.argv[1], progress=False)
+    train(policy, make_dataset(), cfg, sys.argv[1])
     """
 )
 
@@ -232,9 +229,9 @@ def test_resume_after_sigkill_is_bit_identical(tmp_path, policy_type):
 
 def test_resume_refuses_a_different_config(tmp_path):
     policy = L1ChunkPolicy(L1ChunkConfig(**TINY))
-    train(policy, make_dataset(), quick(steps=10, checkpoint_every=5), tmp_path, progress=False)
+    train(policy, make_dataset(), quick(steps=10, checkpoint_every=5), tmp_path)
     cfg = quick(steps=10, checkpoint_every=5, log_every=2)
-    again = train(policy, make_dataset(), cfg, tmp_path, progress=False)
+    again = train(policy, make_dataset(), cfg, tmp_path)
     assert again.resumed_from_step == 10  # finished run: nothing left to do, log_every may differ
     with pytest.raises(ValueError, match=r"differs in \['lr'\]"):
-        train(policy, make_dataset(), quick(steps=10, lr=1e-2), tmp_path, progress=False)
+        train(policy, make_dataset(), quick(steps=10, lr=1e-2), tmp_path)
