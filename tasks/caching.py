@@ -1,7 +1,8 @@
 """Content-addressed caching for pipeline steps: the one cache a step consults.
 
 A step's *content key* is the sha256 of its kind (the task name), the ids (content hashes) of its input
-artifacts, its validated config and the code version: never paths, never Python object ids.
+artifacts, its validated config and its step code hash (tasks.step_code): never paths, never Python
+object ids.
 
 `cached_step` keeps an index content key -> artifact id in the home directory; a step whose artifact
 is in the store and verifies is not recomputed (also after a killed flow or a deleted Prefect home),
@@ -26,7 +27,7 @@ from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
-from tasks.code_version import code_version
+from tasks.step_code import step_code
 from tasks.workspace import Workspace
 
 # What `cached_step` did, per call, inside a `step_outcomes()` block: "cached" or "produced".
@@ -68,13 +69,13 @@ def _record(outcome: str) -> None:
 
 
 def content_key(kind: str, inputs: dict[str, str], config: dict[str, Any], module: str) -> str:
-    """`module`: the step's module; its import closure is the code version (tasks.code_version)."""
+    """`module`: the step's module; the hash of its import closure is the step code (tasks.step_code)."""
     payload = json.dumps(
         {
             "kind": kind,
             "inputs": dict(sorted(inputs.items())),
             "config": config,
-            "code": code_version(module),
+            "step_code": step_code(module),
         },
         sort_keys=True,
         default=str,

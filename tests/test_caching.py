@@ -9,17 +9,17 @@ from pathlib import Path
 from conftest import run_cli
 
 from tasks.caching import cached_step, content_key, lookup
-from tasks.code_version import code_version, module_closure
+from tasks.step_code import module_closure, step_code
 from tasks.prefect_task import pipeline_task
 from tasks.workspace import Workspace
 
 
-def test_code_version_covers_the_import_closure_only():
+def test_step_code_covers_the_import_closure_only():
     closure = module_closure("tasks.data")
     assert {"capvector_core.demos", "capvector_core.envs", "tasks.caching"} <= set(closure)
     assert "capvector_core.trainer" not in closure and "flows.cli" not in closure
     assert "capvector_core.trainer" in module_closure("tasks.training")
-    assert code_version("tasks.data") != code_version("tasks.training")
+    assert step_code("tasks.data") != step_code("tasks.training")
 
 
 def test_content_key_depends_on_inputs_config_kind_and_module():

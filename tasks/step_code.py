@@ -1,4 +1,7 @@
-"""The code version that goes into every cache key: a hash of the source a step actually runs.
+"""A step's code hash (`step_code`), part of every cache key: a hash of the source a step actually runs.
+
+Not the `source_revision` of a sidecar (artifacts.provenance: `git describe` of the checkout, which
+says where an artifact came from but decides no cache hit): two names for two different things.
 
 Prefect's default cache policy hashes only the task's own source; a change in a helper it calls
 (a loss, a data loader) would silently reuse stale results. Hashing every file of the project
@@ -60,7 +63,7 @@ def module_closure(module: str) -> tuple[str, ...]:
 
 
 @functools.cache
-def code_version(module: str) -> str:
+def step_code(module: str) -> str:
     """sha256 (16 hex chars) over the names and bytes of the sources in `module`'s closure."""
     digest = hashlib.sha256()
     for name in module_closure(module):
