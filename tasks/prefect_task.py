@@ -7,16 +7,13 @@ none), so any record in `$PREFECT_HOME/storage` under a key a step looks up woul
 run as code. A step that its content cache answered returns `Completed(name="Cached")`, which is
 what Prefect's own cache hits look like in the UI.
 
-**Processes.** A `capvector run` starts step workers (Prefect's process pool) and Prefect's embedded
-API server (one per process that talks to the embedded API). None of them may outlive the CLI, even
-after `kill -9`, and nothing of a dead run may commit:
+**Processes.** A `capvector run` starts step workers (Prefect's process pool) and one Prefect API
+server (flows/run_server.py) that the CLI and the workers share. None of them may outlive the CLI,
+even after `kill -9`, and nothing of a dead run may commit:
 - a worker asks the kernel for SIGKILL when the CLI dies (Linux, `PR_SET_PDEATHSIG`), so it cannot
   run a line after that; a watchdog thread (any OS) exits it when its parent changes, and a step does
   not start in a worker whose parent is gone (`RunAbandoned`);
-- Prefect's embedded API servers are not bound yet: one started through a launcher with a parent
-  watchdog was once found dead mid-run, leaving its worker waiting forever to flush events, so the
-  launcher was taken out; after `kill -9` the servers outlive the CLI (its process group still ends
-  them) until the run uses one server that the workers attach to (issue 16).
+- the server gets SIGTERM when the CLI dies (flows/run_server.py).
 """
 
 from __future__ import annotations
