@@ -10,14 +10,14 @@ from typing import Any
 
 from prefect import flow
 
-from artifacts.scores import read_scores
 from flows.config import ARMS, PipelineConfig
 from flows.pipeline import step_runner, submit_arm, submit_vector_stage, vector_stage_steps
 from flows.runs import publish_markdown, recorded_run
 from flows.steps import StepRunner, resolve
 from tasks.evaluation import evaluate_task
+from tasks.selection import select_task
 from tasks.vectors import merge_task
-from tasks.workspace import provenance, workspace_for
+from tasks.workspace import workspace_for
 
 
 @flow(name="sweep", log_prints=True, task_runner=step_runner(), persist_result=False)
@@ -27,7 +27,7 @@ def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
     arm, seed = cfg.sweep.arm, cfg.seeds[0]
     lambdas = cfg.sweep.lambdas if ARMS[arm].orthogonal else [None]
     cells_total = len(cfg.sweep.alphas) * len(lambdas)
-    total = vector_stage_steps() + len(cfg.sweep.alphas) + 2 * cells_total
+    total = vector_stage_steps() + len(cfg.sweep.alphas) + 2 * cells_total + 1
     steps = StepRunner(home, total, f"sweep {cfg.name}")
     with recorded_run(workspace, "sweep", {"config": config, "home": home}):
         stage = submit_vector_stage(steps, cfg)
@@ -51,29 +51,19 @@ def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
                 cells.append(
                     {"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation}
                 )
-        eval_ids = [resolve(cell["evaluation"]) for cell in cells]
-        scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=eval_ids)}
-        rows = [
-            {
-                "alpha": cell["alpha"],
-                "lambda": cell["lambda"],
-                "checkpoint_id": resolve(cell["checkpoint"]),
-                "evaluation_id": eval_id,
-                "validation_success": scores[eval_id].mean_success,
-            }
-            for cell, eval_id in zip(cells, eval_ids, strict=True)
-        ]
-        best = max(rows, key=lambda r: r["validation_success"])
-        doc = {"arm": arm, "seed": seed, "grid": rows, "best": best, "selected_on": "validation seeds"}
-        record = workspace.api.register_json(
-            doc,
-            kind="sweep",
-            name=f"sweep {cfg.name}",
-            parents=[(e, "evaluation") for e in dict.fromkeys(r["evaluation_id"] for r in rows)],
-            **provenance(),
-        )
+        selection = {
+            "name": "α and λ",
+            "context": {"arm": arm, "seed": seed},
+            "candidates": [
+                {"values": {"alpha": c["alpha"], "lambda": c["lambda"]}, "evaluation": f"cell {i}"}
+                for i, c in enumerate(cells)
+            ],
+        }
+        evaluations = {f"cell {i}": c["evaluation"] for i, c in enumerate(cells)}
+        sweep_id = resolve(steps.submit(select_task, f"sweep {cfg.name}", evaluations, selection))
+        doc = workspace.api.store.open_json(sweep_id)
         publish_markdown(f"{cfg.name}-sweep", sweep_markdown(doc), "α × λ sweep on validation seeds")
-    return {"sweep": record.id, **doc}
+    return {"sweep": sweep_id, **doc}
 
 
 def sweep_markdown(doc: dict[str, Any]) -> str:

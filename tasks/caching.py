@@ -83,6 +83,12 @@ def content_key(kind: str, inputs: dict[str, str], config: dict[str, Any], modul
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
+def selected_by(inputs: dict[str, str]) -> list[tuple[str, str]]:
+    """Parents for the selections among a step's inputs (keys `selection...`, tasks.selection): a
+    value chosen on validation is an input of the step that uses it, so lineage shows why."""
+    return [(aid, "selected_by") for key, aid in sorted(inputs.items()) if key.startswith("selection")]
+
+
 def _index_path(workspace: Workspace, key: str) -> Path:
     return workspace.cache_dir / f"{key}.json"
 

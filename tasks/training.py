@@ -24,7 +24,7 @@ from capvector_core.lora_sp import LoraSPConfig
 from capvector_core.orthogonal import OrthogonalRegularizer
 from capvector_core.policy import AnyPolicyConfig, Policy, build_policy, load_policy, save_policy
 from capvector_core.trainer import TrainConfig, train
-from tasks.caching import cached_step
+from tasks.caching import cached_step, selected_by
 from tasks.prefect_task import pipeline_task
 from tasks.progress import progress_printer
 from tasks.workspace import Workspace, provenance, workspace_for
@@ -159,6 +159,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                 parents.append((inputs["init"], "init"))
             if "vector" in inputs:
                 parents.append((inputs["vector"], "regularized_by"))
+            parents += selected_by(inputs)
             meta = provenance()
             if adapter_dir is not None:  # first: the checkpoint (the commit point) names it as a parent
                 adapter = workspace.api.register_dir(

@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from capvector_core import vector_ops
 from capvector_core.vector_ops import VectorStat, group_of
-from tasks.caching import cached_step
+from tasks.caching import cached_step, selected_by
 from tasks.prefect_task import pipeline_task
 from tasks.workspace import Workspace, provenance, workspace_for
 
@@ -105,7 +105,11 @@ def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                 kind="checkpoint",
                 name=step,
                 config={**formula, **cfg.model_dump(), "cache_key": key},
-                parents=[(inputs["base"], "base"), (inputs["vector"], "vector", {"alpha": cfg.alpha})],
+                parents=[
+                    (inputs["base"], "base"),
+                    (inputs["vector"], "vector", {"alpha": cfg.alpha}),
+                    *selected_by(inputs),
+                ],
                 **provenance(),
             )
         return record.id

@@ -206,7 +206,7 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
     # α = 1.1, λ = 1e-4 is the preset's own CapVector arm: the sweep reuses the pipeline's checkpoint
     assert result["grid"][1]["checkpoint_id"] == ids["checkpoints"]["capvector/seed0"]
     assert result["grid"][0]["checkpoint_id"] not in ids["checkpoints"].values()
-    assert api.get(result["sweep"]).kind == "sweep"
+    assert api.get(result["sweep"]).kind == "selection"
 
     one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas=[1.0e-4]"]).model_dump(mode="json")
     one_cell = sweep_flow(one_cell, str(home))

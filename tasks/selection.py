@@ -1,0 +1,97 @@
+"""Step: choose values (an lr, α, λ) on validation goals, recorded as a `selection` artifact.
+
+The selection's parents are the validation evaluations it was chosen from, and a step trained or
+merged with a chosen value takes the selection as an input (role `selected_by`), so
+`capvector lineage` of any checkpoint shows why each value was used. Test goals never enter: the
+candidates' evaluations must be under one protocol, and the flow passes validation protocols only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, Field, model_validator
+
+from artifacts.scores import read_scores
+from tasks.caching import cached_step
+from tasks.prefect_task import pipeline_task
+from tasks.workspace import Workspace, provenance, workspace_for
+
+SELECTION_KIND = "selection"
+RULE = "highest mean validation success over tasks; a tie goes to the earlier candidate"
+
+
+class Candidate(BaseModel):
+    """One point of the grid: its values and the input label of its validation evaluation."""
+
+    values: dict[str, Any]
+    evaluation: str = Field(min_length=1)
+
+
+class SelectionConfig(BaseModel):
+    name: str = Field(min_length=1, description="what is chosen, e.g. 'extraction lr'")
+    candidates: list[Candidate] = Field(min_length=1)
+    context: dict[str, Any] = Field(default_factory=dict, description="e.g. the arm and seed")
+
+    @model_validator(mode="after")
+    def _distinct(self) -> SelectionConfig:
+        labels = [c.evaluation for c in self.candidates]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"selection {self.name!r}: candidates share an evaluation label: {labels}")
+        return self
+
+
+def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    cfg = SelectionConfig.model_validate(config)
+    missing = [c.evaluation for c in cfg.candidates if c.evaluation not in inputs]
+    if missing:
+        raise ValueError(f"step {step!r}: no input for candidate evaluation(s) {missing}")
+
+    def produce(key: str) -> str:
+        eval_ids = [inputs[c.evaluation] for c in cfg.candidates]
+        scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=eval_ids)}
+        protocols = {scores[e].fingerprint for e in eval_ids}
+        if len(protocols) != 1:
+            raise ValueError(f"step {step!r}: candidates were evaluated under {len(protocols)} protocols")
+        rows = [
+            {
+                **c.values,
+                "evaluation_id": e,
+                "checkpoint_id": scores[e].checkpoint_id,
+                "validation_success": scores[e].mean_success,
+            }
+            for c, e in zip(cfg.candidates, eval_ids, strict=True)
+        ]
+        best = max(rows, key=lambda r: r["validation_success"])  # max keeps the first of equals
+        doc = {
+            "name": cfg.name,
+            **cfg.context,
+            "parameters": sorted({k for c in cfg.candidates for k in c.values}),
+            "grid": rows,
+            "best": best,
+            "rule": RULE,
+            "selected_on": "validation goals",
+            "protocol": protocols.pop(),
+        }
+        record = workspace.api.register_json(
+            doc,
+            kind=SELECTION_KIND,
+            name=step,
+            config={"cache_key": key},
+            parents=[(e, "validation") for e in dict.fromkeys(eval_ids)],
+            **provenance(),
+        )
+        return record.id
+
+    return cached_step(workspace, "select", inputs, config, produce)
+
+
+def chosen(workspace: Workspace, selection_id: str) -> dict[str, Any]:
+    """The chosen candidate's values (as given in the config), e.g. {"alpha": 1.1, "lambda": 0.01}."""
+    doc = workspace.api.store.open_json(selection_id)
+    return {k: doc["best"][k] for k in doc["parameters"]}
+
+
+@pipeline_task("select")
+def select_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_select(workspace_for(home), step, inputs, config)
