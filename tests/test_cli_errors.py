@@ -15,9 +15,7 @@ from artifacts.api import ArtifactsAPI
 
 
 def _lines(text: str) -> list[str]:
-    """Non-empty lines of stderr, without `capvector run`'s opening banner (not an error; wrapped when
-    the home's path is long)."""
-    text = re.sub(r"^capvector run preset=\S+\s+home=\S+\n", "", text)
+    """Non-empty lines of stderr (run_cli sets CAPVECTOR_QUIET: no progress lines)."""
     return [line for line in text.splitlines() if line.strip()]
 
 
