@@ -6,7 +6,6 @@ report in its output.
 Through the real console entry point (`run_cli`, a subprocess), as a user runs it.
 """
 
-import re
 
 import pytest
 from conftest import run_cli
