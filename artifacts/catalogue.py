@@ -1,10 +1,12 @@
 """DuckDB catalogue: an index over the store (rebuildable from it) answering lineage and score questions.
 
 Connections. DuckDB lets one process hold a database file for writing, and a reader's shared lock keeps
-writers out too (shared/reference/environment.md §6). So nothing keeps a connection open: every unit of
-work connects, does its work in one short transaction, and closes; a lock conflict is retried with
+writers out too (shared/reference/environment.md §6). So nothing keeps the file open: every unit of
+work opens it, does its work in one short transaction, and closes it; a lock conflict is retried with
 exponential backoff and jitter up to a bounded total wait, then reported as CatalogueBusy. Opening an
-up-to-date catalogue takes only the shared lock (the write lock only to create or migrate it).
+up-to-date catalogue takes only the shared lock (the write lock only to create or migrate it). This
+module's own reads (schema check, lineage, scores) attach the file read-only to one in-memory DuckDB
+per process rather than creating a database each time (see `_attached_read`).
 
 Long reads. `query` runs arbitrary read-only SQL (`capvector sql`, selections) on the file for at most
 DIRECT_READ_S; a statement still running then is interrupted and re-run on a private snapshot, copied
@@ -24,7 +26,11 @@ is listed at most every REMOTE_SYNC_INTERVAL_S.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import gc
 import hashlib
+import itertools
 import json
 import logging
 import os
@@ -33,7 +39,7 @@ import shutil
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
@@ -87,34 +93,83 @@ WRITE_CONFIG = {"threads": 1}
 # Integer columns that may hold NULL: pandas would turn them into float64, so they get "Int64".
 INT_COLUMNS = {"size_bytes", "n_files", "numel", "episode", "seed", "steps", "n_episodes"}
 
+# Creating a DuckDB database costs 20-40 ms (every built-in function is registered anew), attaching a
+# file to a running one about 2 ms. So the lookups this module runs itself (schema check, lineage,
+# scores) attach the catalogue read-only to one in-memory database per process, and detach it when
+# done: no lock outlives the unit of work, as with a connection of its own. Arbitrary SQL (`query`)
+# keeps a connection of its own with all of readonly_sql's guards.
+_HOST: tuple[int, duckdb.DuckDBPyConnection] | None = None
+_HOST_GUARD = threading.Lock()
+_ALIASES = itertools.count()
+
+
+def _host_cursor() -> duckdb.DuckDBPyConnection:
+    global _HOST
+    with _HOST_GUARD:
+        if _HOST is None or _HOST[0] != os.getpid():  # a forked child must not share its parent's
+            _HOST = (os.getpid(), duckdb.connect(":memory:", config={"threads": 1}))
+        return _HOST[1].cursor()
+
+
+@atexit.register
+def _close_host() -> None:
+    """Closed before the interpreter tears down, or DuckDB's bindings report it as leaked."""
+    global _HOST
+    with _HOST_GUARD:
+        if _HOST is not None and _HOST[0] == os.getpid():
+            _HOST[1].close()
+        _HOST = None
+
+
+def _attached_read(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
+    """`fn` on a cursor whose default database is `path`, attached read-only for this call only."""
+    alias, quoted = f"catalogue_{next(_ALIASES)}", str(path).replace("'", "''")
+    con = _host_cursor()
+    try:
+        con.execute(f"ATTACH '{quoted}' AS {alias} (READ_ONLY)")
+    except BaseException:
+        con.close()
+        raise
+    try:
+        con.execute(f"USE {alias}")
+        return fn(con)
+    finally:
+        con.close()  # from another cursor, so that nothing `fn` left on this one can keep the file
+        detach = _host_cursor()
+        try:
+            detach.execute(f"DETACH {alias}")
+        finally:
+            detach.close()
+
+
 _WALK = """
-WITH RECURSIVE walk(id, depth, via, role) USING KEY (id) AS (
-    SELECT e.{far}, 1, e.{near}, e.role FROM edges e WHERE e.{near} = $start
+WITH RECURSIVE walk(id, depth) USING KEY (id) AS (
+    SELECT e.{far}, 1 FROM edges e WHERE e.{near} = $start AND e.{far} <> $start
     UNION
-    SELECT e.{far}, w.depth + 1, e.{near}, e.role
+    SELECT e.{far}, w.depth + 1
     FROM walk w JOIN edges e ON e.{near} = w.id
-    WHERE w.depth < $max_depth AND e.{far} NOT IN (SELECT id FROM recurring.walk)
-), nodes AS (SELECT $start AS id, 0 AS depth UNION ALL SELECT id, depth FROM walk)
+    WHERE w.depth < $max_depth AND e.{far} <> $start AND e.{far} NOT IN (SELECT id FROM recurring.walk)
+), nodes AS MATERIALIZED (SELECT $start AS id, 0 AS depth UNION ALL SELECT id, depth FROM walk)
 """
 # Breadth-first with a visited set (`recurring.walk`): each node is reached once, at its smallest
-# depth, so a diamond-shaped history costs one row per node rather than one per path. Each row keeps
-# only the hop it came by (`via`, `role`); role paths are rebuilt from those hops in Python, because
-# carrying lists through the recursion made the query 6x slower on 10,000 artifacts.
+# depth, so a diamond-shaped history costs one row per node rather than one per path (and the start
+# is never reached again, were the edges ever to hold a cycle). Only (id, depth) is carried: the hop
+# each node came by is read from the edges among the walked nodes (below), which the views need anyway.
+# MATERIALIZED: the lineage select reads `nodes` twice, and the recursion must run once.
 ANCESTORS = _WALK.format(near="child", far="parent")
 DESCENDANTS = _WALK.format(near="parent", far="child")
 
-LINEAGE_SELECT = """
-SELECT w.id, a.kind, a.name, w.depth, w.via, w.role
-FROM walk w LEFT JOIN artifacts a USING (id) ORDER BY w.depth, w.id
+# One row per edge from a walked node (`n`) towards the start (to a child, for ancestors) whose other
+# end was walked too: together every edge among the walked nodes, not only the hop each was first
+# reached by (history is a DAG: θ_pt is a parent of θ_ft, θ_ao and θ_meta, and views draw all of it).
+_LINEAGE_SELECT = """
+SELECT n.id, n.depth, a.kind, a.name, e.{near}, e.role
+FROM nodes n JOIN edges e ON e.{far} = n.id SEMI JOIN nodes m ON m.id = e.{near}
+LEFT JOIN artifacts a ON a.id = n.id
+ORDER BY n.depth, n.id, e.{near}, e.role
 """
-# Every edge between two nodes of a walk, not only the hop each node was first reached by: history is
-# a DAG (θ_pt is a parent of θ_ft, θ_ao and θ_meta), and views draw all of it. Given the walked ids
-# rather than re-running the recursion: 20 ms for 3,000 nodes and 5,500 edges.
-LINKS_SELECT = """
-WITH n AS (SELECT unnest($ids) AS id)
-SELECT e.parent, e.child, e.role FROM edges e SEMI JOIN n p ON e.parent = p.id SEMI JOIN n c ON e.child = c.id
-ORDER BY ALL
-"""
+ANCESTORS_SELECT = ANCESTORS + _LINEAGE_SELECT.format(near="child", far="parent")
+DESCENDANTS_SELECT = DESCENDANTS + _LINEAGE_SELECT.format(near="parent", far="child")
 VECTORS_SELECT = """
 SELECT e.parent, a.name, e.child, n.depth + 1, TRY_CAST(e.attrs->>'alpha' AS DOUBLE), e.attrs
 FROM nodes n JOIN edges e ON e.child = n.id AND e.role = 'vector'
@@ -369,16 +424,15 @@ class Catalogue:
     def _prepare(self) -> None:
         """Check (read-only, shared lock) or create/migrate (write lock) the schema; read the sync markers."""
 
+        def current(con: duckdb.DuckDBPyConnection) -> bool:
+            if check_version(con, str(self.path), self.migrations) < self.migrations[-1][0]:
+                return False
+            self.markers = _read_markers(con)
+            return True
+
         def work() -> None:
-            latest = self.migrations[-1][0]
-            if self.path.exists():
-                con = duckdb.connect(str(self.path), read_only=True, config=READ_ONLY_CONFIG)
-                try:
-                    if check_version(con, str(self.path), self.migrations) == latest:
-                        self.markers = _read_markers(con)
-                        return
-                finally:
-                    con.close()
+            if self.path.exists() and _attached_read(self.path, current):
+                return
             con = duckdb.connect(str(self.path), config=WRITE_CONFIG)
             try:
                 migrate(con, str(self.path), self.migrations)
@@ -433,7 +487,14 @@ class Catalogue:
 
         return self._retrying(work, max_wait_s)
 
+    def _lookup(self, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
+        """`fn` on the catalogue attached read-only to this process's database: for this module's own
+        queries (see `_attached_read`)."""
+        self._ensure_ready()
+        return self._retrying(lambda: _attached_read(self.path, fn))
+
     def _read(self, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
+        """`fn` on a connection of its own with readonly_sql's guards: for SQL that is not ours."""
         self._ensure_ready()
 
         def work() -> T:
@@ -475,7 +536,7 @@ class Catalogue:
             shutil.rmtree(folder, ignore_errors=True)
 
     def schema_version(self) -> int:
-        return self._read(lambda con: check_version(con, str(self.path), MIGRATIONS))
+        return self._lookup(lambda con: check_version(con, str(self.path), MIGRATIONS))
 
     # ---------------------------------------------------------------- writing
     @staticmethod
@@ -576,7 +637,7 @@ class Catalogue:
             keys = ("flow_name", "parameters", "state", "started_at", "ended_at")
             return ids, {r[0]: _run_state(dict(zip(keys, r[1:], strict=True))) for r in runs}
 
-        return self._read(read)
+        return self._lookup(read)
 
     def sync(self, store: Any, max_wait_s: float | None = None) -> SyncReport:
         """Index what the store has and the catalogue lacks: artifacts without a row (only their sidecars
@@ -676,40 +737,31 @@ class Catalogue:
 
     # ---------------------------------------------------------------- lineage
     def _walk(
-        self, cte: str, select: str, start: str, max_depth: int | None, extra: dict[str, Any] | None = None
+        self, sql: str, start: str, max_depth: int | None, extra: dict[str, Any] | None = None
     ) -> list[tuple]:
         params = {
             "start": start,
             "max_depth": max_depth if max_depth is not None else 2**31 - 1,
             **(extra or {}),
         }
-        return self._read(lambda con: con.execute(cte + select, params).fetchall())
+        return self._lookup(lambda con: con.execute(sql, params).fetchall())
 
-    def _lineage(self, cte: str, start: str, max_depth: int | None, owner: int) -> list[LineageNode]:
-        params = {"start": start, "max_depth": max_depth if max_depth is not None else 2**31 - 1}
-
-        def read(con: duckdb.DuckDBPyConnection) -> tuple[list[tuple], list[tuple]]:
-            rows = con.execute(cte + LINEAGE_SELECT, params).fetchall()
-            links = (
-                con.execute(LINKS_SELECT, {"ids": [start, *(r[0] for r in rows)]}).fetchall() if rows else []
-            )
-            return rows, links
-
-        rows, links = self._read(read)
-        return _with_paths(start, rows, links, owner)
+    def _lineage(self, sql: str, start: str, max_depth: int | None, owner: int) -> list[LineageNode]:
+        with _gc_paused():
+            return _lineage_nodes(start, self._walk(sql, start, max_depth), owner)
 
     def ancestors(self, artifact_id: str, max_depth: int | None = None) -> list[LineageNode]:
         """Everything `artifact_id` was made from, each once at its shortest distance, with the role path,
         and (`links`) every edge among them."""
-        return self._lineage(ANCESTORS, artifact_id, max_depth, owner=0)
+        return self._lineage(ANCESTORS_SELECT, artifact_id, max_depth, owner=0)
 
     def descendants(self, artifact_id: str, max_depth: int | None = None) -> list[LineageNode]:
         """Everything made (directly or not) from `artifact_id`, with every edge among them (`links`)."""
-        return self._lineage(DESCENDANTS, artifact_id, max_depth, owner=1)
+        return self._lineage(DESCENDANTS_SELECT, artifact_id, max_depth, owner=1)
 
     def vectors_merged_into(self, artifact_id: str) -> list[MergedVector]:
         """Vectors merged into the artifact or any of its ancestors (edges with role `vector`)."""
-        rows = self._walk(ANCESTORS, VECTORS_SELECT, artifact_id, None)
+        rows = self._walk(ANCESTORS + VECTORS_SELECT, artifact_id, None)
         return [
             MergedVector(
                 vector_id=r[0],
@@ -728,7 +780,7 @@ class Catalogue:
         Without `fingerprint`, rows under several protocols raise MixedFingerprints rather than being
         returned side by side as if comparable.
         """
-        rows = self._walk(DESCENDANTS, SCORES_SELECT, artifact_id, None, {"fingerprint": fingerprint})
+        rows = self._walk(DESCENDANTS + SCORES_SELECT, artifact_id, None, {"fingerprint": fingerprint})
         fps = sorted({r[6] for r in rows})
         if len(fps) > 1:
             raise MixedFingerprints(fps)
@@ -780,32 +832,55 @@ class Catalogue:
         return frame
 
 
-def _with_paths(
-    start: str, rows: list[tuple], links: Sequence[tuple] = (), owner: int = 0
-) -> list[LineageNode]:
-    """Give each row its id path and role path from `start`, extending the path of the hop it came by,
-    and its links: the edges of `links` whose end away from the start is this row (`owner`: 0 = the
-    parent, for ancestors; 1 = the child, for descendants).
+@contextlib.contextmanager
+def _gc_paused() -> Iterator[None]:
+    """No cycle collection while a lineage is fetched and built. Its tens of thousands of new objects
+    (none in a cycle) set off dozens of collections, among them a full pass over every object a fresh
+    process's imports left (30-70 ms CPU for 4,580 nodes, more than the build); afterwards one pass over
+    the young objects remains."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
-    Rows arrive ordered by depth, so that hop's path is always known already.
-    """
+
+def _lineage_nodes(start: str, rows: Iterable[tuple], owner: int) -> list[LineageNode]:
+    """Nodes from a lineage select's rows, which come ordered by depth, node, near end and role. A node's
+    links are its rows' edges (`owner`: the node is the edge's parent (0, ancestors) or child (1)); its
+    path extends that of the first of them whose near end is one step nearer the start, so the choice
+    among equally short paths does not depend on the query plan.
+
+    Not validated: every value comes from our own schema, and validating 3,000-5,000 nodes cost more
+    than the query (pydantic's model_construct is slower still)."""
     paths: dict[str, tuple[list[str], list[str]]] = {start: ([start], [])}
-    owned: dict[str, list[tuple]] = {}
-    for link in links:
-        owned.setdefault(link[owner], []).append(link)
-    out = []
-    for artifact_id, kind, name, depth, via, role in rows:
-        ids, roles = paths[via]
-        paths[artifact_id] = ids_roles = ([*ids, artifact_id], [*roles, role])
-        out.append(
-            LineageNode(
-                id=artifact_id,
-                kind=kind,
-                name=name,
-                depth=depth,
-                path=ids_roles[0],
-                roles=ids_roles[1],
-                links=owned.get(artifact_id, []),
-            )
-        )
-    return out
+    depths = {start: 0}
+    nodes: list[dict[str, Any]] = []
+    node: dict[str, Any] = {"id": None}
+    for node_id, depth, kind, name, near, role in rows:
+        if node_id != node["id"]:
+            depths[node_id] = depth
+            node = dict(id=node_id, kind=kind, name=name, depth=depth, roles=None, path=None, links=[])
+            nodes.append(node)
+        node["links"].append((node_id, near, role) if owner == 0 else (near, node_id, role))
+        if node["path"] is None and depths.get(near) == depth - 1:
+            ids, roles = paths[near]
+            path = paths[node_id] = ([*ids, node_id], [*roles, role])
+            node["path"], node["roles"] = path
+    return [_trusted(LineageNode, node) for node in nodes]
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _trusted(cls: type[M], fields: dict[str, Any]) -> M:
+    """`cls` from a value for every field, of the right type, unvalidated: what model_construct sets,
+    for a model without extras, private attributes or post-init."""
+    obj = cls.__new__(cls)
+    object.__setattr__(obj, "__dict__", fields)
+    object.__setattr__(obj, "__pydantic_fields_set__", set(fields))
+    object.__setattr__(obj, "__pydantic_extra__", None)
+    object.__setattr__(obj, "__pydantic_private__", None)
+    return obj

@@ -11,6 +11,8 @@ Three independent guards, because each alone has a gap:
 One thread: opening a catalogue costs about half as much without a worker pool to start.
 (`Catalogue.query` runs the statement on a private snapshot of the file, so a long query holds no
 writer off; whatever got through all three would change only that copy.)
+These guards are for SQL from outside; the catalogue's own fixed queries (lineage, scores) run on the
+file attached read-only to a process-wide database (`catalogue._attached_read`), which is cheaper.
 """
 
 import re
