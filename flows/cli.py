@@ -76,9 +76,10 @@ def _home(home: str | None) -> str:
 
 
 def _workspace(home: str | None):
-    from tasks.workspace import workspace_for
+    """A fresh Workspace per call: opening it is what catches the catalogue up with the store."""
+    from tasks.workspace import Workspace
 
-    return workspace_for(_home(home))
+    return Workspace(_home(home))
 
 
 def _print_json(data: Any) -> None:
@@ -95,9 +96,7 @@ def _preflight(command: str, home: str | None) -> None:
     if not os.environ.get(LOG_FILE_ENV):  # step workers inherit it
         from datetime import UTC, datetime
 
-        from tasks.workspace import workspace_for
-
-        logs = workspace_for(_home(home)).local_root / "logs"
+        logs = _workspace(home).local_root / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
         slug = "-".join(command.replace("--preset", "").split())

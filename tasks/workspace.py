@@ -88,5 +88,7 @@ def _or_none(value: Any) -> str | None:
 @functools.cache
 def workspace_for(home: str) -> Workspace:
     """The process's one Workspace per home: steps that run in the flow's process or in a pool
-    worker share it, so the catalogue is opened (and migrations checked) once per process."""
+    worker share it, so the catalogue is opened, checked and caught up once per process. For flow
+    and worker processes, which live for one run (Prefect's `serve` runs each flow run in a process
+    of its own); the CLI opens a fresh one per command."""
     return Workspace(home)
