@@ -16,24 +16,33 @@ Integrity: nothing wrong is ever served under a trusted id.
   not hashed again while its inode, size, mtime and ctime are unchanged, for at most
   VERIFIED_TTL_NS, and only once its times are RACY_WINDOW_NS old (a coarse clock could otherwise
   give a change the same times); across processes every read re-hashes.
-- Parents: a registration re-checks each parent (sealed sidecar, content hash) before writing.
+- Streaming: a computation may read an artifact's own files (`stream_path`) and hash them as it reads,
+  then hand those hashes to `check_read` before it registers anything: the hash taken while reading
+  is the check, so the bytes are read once, not once to verify and once to compute.
+- Parents: a registration re-checks each parent (sealed sidecar, content hash) before writing; a
+  parent whose every file the caller hashed while reading it (`parent_hashes`) is not hashed again.
+- Staging: content written or copied into `staging()` (the store's own `tmp/`) is committed by a
+  rename, with the hashes its writer took, not copied and hashed once more.
 - Metadata: the sidecar carries a seal, sha256 of its canonical metadata (records.metadata_digest);
   an edited sidecar is refused naming the id. Format-1 sidecars (written before sealing) still load,
   as unsealed. The seal catches accidental edits and tooling bugs, not a writer who recomputes it.
 - `audit()` is the full check behind `capvector verify`: no memo, no writes.
 """
 
+import contextlib
 import errno
+import fcntl
 import io
 import json
 import os
 import posixpath
 import re
 import shutil
+import stat
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -51,7 +60,7 @@ from artifacts.errors import (
     PathEscape,
     UnknownParent,
 )
-from artifacts.hashing import copy_and_hash, hash_stream, manifest_id
+from artifacts.hashing import copy_and_hash, hash_file, hash_stream, manifest_id
 from artifacts.provenance import code_version
 from artifacts.records import (
     ArtifactRecord,
@@ -68,6 +77,9 @@ from artifacts.records import (
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 ParentLike = ParentRef | tuple[str, str] | tuple[str, str, dict[str, Any]]
+# artifact id -> {member path: sha256} the caller took while reading that artifact's files
+ParentHashes = Mapping[str, Mapping[str, str]]
+FICLONE = 0x40049409  # linux/fs.h: share the source's blocks (btrfs, XFS, bcachefs); copy-on-write
 
 
 # In-process memo of verified local files: stat key -> (sha256, when it was hashed, time_ns).
@@ -122,6 +134,92 @@ def _fsync_dir(path: str) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def copy_file(src: str | os.PathLike[str] | BinaryIO, dst: str | os.PathLike[str]) -> None:
+    """Copy a file (a path, or a file open for reading) to a new path by the kernel's fastest way: a
+    reflink where the filesystem has them (no bytes copied), else copy_file_range (no pass through
+    user space), else a plain copy.
+
+    Never a hard link: a later edit of either file would change the other."""
+    with contextlib.ExitStack() as stack:
+        fi = src if hasattr(src, "fileno") else stack.enter_context(open(src, "rb"))  # type: ignore[arg-type]
+        fo = stack.enter_context(open(dst, "xb"))
+        with contextlib.suppress(OSError):
+            fcntl.ioctl(fo.fileno(), FICLONE, fi.fileno())
+            return
+        offset = 0
+        try:
+            while n := os.copy_file_range(fi.fileno(), fo.fileno(), 1 << 30, offset):
+                offset += n
+        except OSError:  # no copy_file_range here (old kernel, some filesystems): start over in user space
+            fi.seek(0)
+            fo.seek(0)
+            fo.truncate()
+            shutil.copyfileobj(fi, fo, 1 << 20)
+
+
+def copy_in(src: str | os.PathLike[str], dst: str | os.PathLike[str], skip: Iterable[str] = ()) -> None:
+    """Copy a local file or directory tree (every file, as `put_dir` stores it; members in `skip` are
+    left for the caller to write) to a new path, by `copy_file`, and start writing the copies back to
+    disk. Into `ArtifactStore.staging()`: a copy cannot change under its reader, as the source could."""
+    src, dst, skip = os.path.abspath(os.fspath(src)), Path(dst), set(skip)
+    if not os.path.isdir(src):
+        copy_file(src, dst)
+        flush_soon(dst)
+        return
+    dst.mkdir()
+    for rel, full in _members(src):
+        if rel not in skip:
+            (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+            copy_file(full, dst / rel)
+            flush_soon(dst / rel)
+
+
+def fsync_file(path: str | os.PathLike[str]) -> None:
+    with open(path, "rb") as f:
+        os.fsync(f.fileno())
+
+
+def flush_soon(path: str | os.PathLike[str]) -> None:
+    """Write a fresh file back to disk in a helper thread while other work goes on, so that the fsync
+    before its commit finds little left to do."""
+
+    def flush() -> None:
+        with contextlib.suppress(OSError):  # discarded meanwhile (a failed command): nothing to keep
+            fsync_file(path)
+
+    threading.Thread(target=flush, daemon=True).start()
+
+
+def _members(src_dir: str) -> list[tuple[str, str]]:
+    """(relative path, full path) of every file under a directory; a symlinked directory is refused
+    (following it could loop or pull in an unbounded tree)."""
+    members = []
+    for dirpath, dirnames, filenames in os.walk(src_dir):
+        for d in dirnames:
+            if os.path.islink(os.path.join(dirpath, d)):
+                raise ValueError(f"symlinked directory {os.path.join(dirpath, d)} cannot be stored")
+        for fn in filenames:
+            full = os.path.join(dirpath, fn)
+            members.append((safe_relpath(os.path.relpath(full, src_dir).replace(os.sep, "/")), full))
+    return sorted(members)
+
+
+def _plain_name(filename: str) -> str:
+    filename = safe_relpath(filename)
+    if "/" in filename:
+        raise PathEscape(f"filename {filename!r} must be a plain name")
+    return filename
+
+
+def _expect(hashes: Mapping[str, str], entries: list[tuple[str, int, str]]) -> None:
+    """Bytes copied in must be those the caller hashed: a file that changed since is refused."""
+    for rel, _, digest in entries:
+        if hashes.get(rel, digest) != digest:
+            raise ValueError(
+                f"{rel} changed since it was hashed (sha256 {digest[:12]}…, not {hashes[rel][:12]}…)"
+            )
 
 
 class ArtifactStore:
@@ -180,6 +278,26 @@ class ArtifactStore:
         self.fs.makedirs(tmp, exist_ok=True)
         return tmp
 
+    @contextlib.contextmanager
+    def staging(self) -> Iterator[Path]:
+        """A private local folder, removed at the end, for content about to be registered: in the
+        store's own `tmp/` when local, so that `put_file`/`put_dir` commit what lies there by a rename;
+        in the local cache for a remote store (uploaded as usual)."""
+        base = Path(self._p("tmp")) if self.local else self.cache_dir.parent / "tmp"
+        path = base / uuid.uuid4().hex
+        path.mkdir(parents=True)
+        try:
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+
+    def _in_staging(self, path: str) -> bool:
+        """A regular file or directory inside this local store's `tmp/`: moved in, not copied."""
+        if not self.local or os.path.islink(path):
+            return False
+        tmp = os.path.realpath(self._p("tmp")) + os.sep
+        return os.path.realpath(path).startswith(tmp)
+
     def _discard(self, path: str) -> None:
         if self.local:
             shutil.rmtree(path, ignore_errors=True)
@@ -216,7 +334,9 @@ class ArtifactStore:
         return size, int(modified.timestamp() * 1_000_000) * 1000
 
     # ---------------------------------------------------------------- writing artifacts
-    def _resolve_parents(self, parents: Iterable[ParentLike]) -> list[ParentRef]:
+    def _resolve_parents(
+        self, parents: Iterable[ParentLike], hashed: ParentHashes | None = None
+    ) -> list[ParentRef]:
         """Full ids of the parents, checked before any byte is written (UnknownParent otherwise)."""
         out = []
         for p in parents:
@@ -229,26 +349,44 @@ class ArtifactStore:
                 full = self.resolve(ref.id)
             except ArtifactNotFound:
                 raise UnknownParent(ref.id) from None
-            self._check_parent(full)
+            self._check_parent(full, (hashed or {}).get(full))
             out.append(ref.model_copy(update={"id": full}))
         return out
 
-    def _check_parent(self, artifact_id: str) -> None:
+    def _check_parent(self, artifact_id: str, hashed: Mapping[str, str] | None = None) -> None:
         """A parent edge vouches for the parent: its sidecar must pass its seal and its content its
-        hash (memoized: a parent this process just read is not hashed again). On a remote store the
-        content is hashed when it is downloaded; here only its presence and sizes are checked."""
+        hash (memoized: a parent this process just read is not hashed again), unless `hashed` (the
+        sha256 of each file, taken by the caller while reading it) covers every file. On a remote
+        store the content is hashed when it is downloaded; here only its presence and sizes are checked."""
         record = self._load_sidecar(artifact_id)
-        if self.local:
+        read = hashed is not None and all(hashed.get(f.path) == f.sha256 for f in record.files)
+        if self.local and not read:
             self._verify(record, verify=True)
-            return
+        else:
+            self._check_present(record)
+
+    def _check_present(self, record: ArtifactRecord) -> None:
+        """Every recorded file is there with its recorded size; locally, as a regular file, and a
+        directory holds nothing else (what a verified read checks besides the hashes)."""
         obj = self.object_path(record.id)
         for entry in record.files:
+            full = posixpath.join(obj, entry.path)
             try:
-                size, _ = self._stat(posixpath.join(obj, entry.path))
+                if self.local:
+                    st = os.lstat(full)
+                    if not stat.S_ISREG(st.st_mode):
+                        raise CorruptArtifact(record.id, f"{entry.path} is not a regular file")
+                    size = st.st_size
+                else:
+                    size, _ = self._stat(full)
             except FileNotFoundError:
                 raise CorruptArtifact(record.id, f"{entry.path} is missing") from None
             if size != entry.size:
                 raise CorruptArtifact(record.id, f"{entry.path} is {size} bytes, recorded {entry.size}")
+        if self.local and record.layout == "dir":
+            extra = self._unrecorded_files(record)
+            if extra:
+                raise CorruptArtifact(record.id, f"files not in its record: {', '.join(extra[:5])}")
 
     def _finish(
         self,
@@ -265,8 +403,11 @@ class ArtifactStore:
         task_run_id: str | None,
     ) -> ArtifactRecord:
         existing = self._committed_record(artifact_id)
-        if existing is not None and not self._intact(existing):
-            self._repair_with(staged, existing, layout, entries)
+        if existing is not None:
+            if self.local and existing.layout == layout and self._swappable(existing, entries):
+                self._swap_in(staged, existing, entries)
+            elif not self._intact(existing):
+                self._repair_with(staged, existing, layout, entries)
         self._commit_object(staged, artifact_id)  # no-op when present; restores a deleted object otherwise
         if existing is not None:
             return existing  # written before: content addressing makes this idempotent
@@ -320,18 +461,22 @@ class ArtifactStore:
         parents: Iterable[ParentLike] = (),
         *,
         filename: str,
+        sha256: str | None = None,
         library_versions: dict[str, str | None] | None = None,
         flow_run_id: str | None = None,
         task_run_id: str | None = None,
+        parent_hashes: ParentHashes | None = None,
     ) -> ArtifactRecord:
-        """Store everything readable from `src` as a single-file artifact named `filename` inside it."""
-        filename = safe_relpath(filename)
-        if "/" in filename:
-            raise PathEscape(f"filename {filename!r} must be a plain name")
-        refs = self._resolve_parents(parents)
+        """Store everything readable from `src` as a single-file artifact named `filename` inside it.
+
+        `sha256`: what the caller hashed these bytes to; other bytes are refused (ValueError).
+        `parent_hashes`: see `_check_parent`."""
+        filename = _plain_name(filename)
+        refs = self._resolve_parents(parents, parent_hashes)
         staged = self._stage()
         try:
             digest, size = self._write_stream(src, posixpath.join(staged, filename))
+            _expect({filename: sha256} if sha256 else {}, [(filename, size, digest)])
             return self._finish(
                 staged,
                 digest,
@@ -358,8 +503,14 @@ class ArtifactStore:
         parents: Iterable[ParentLike] = (),
         **kw: Any,
     ) -> ArtifactRecord:
-        """Store a local file; its id equals `sha256sum src_path`."""
-        kw.setdefault("filename", os.path.basename(os.fspath(src_path)))
+        """Store a local file; its id equals `sha256sum src_path`.
+
+        A file in this store's `staging()` is moved in, not copied, and with `sha256` (its hash as its
+        writer or reader took it) not read again either."""
+        src_path = os.fspath(src_path)
+        kw.setdefault("filename", os.path.basename(src_path))
+        if self._in_staging(src_path):
+            return self._adopt(src_path, "file", kind, name, config, parents, **kw)
         with open(src_path, "rb", buffering=0) as f:
             return self.put_stream(f, kind, name, config, parents, **kw)
 
@@ -401,38 +552,44 @@ class ArtifactStore:
         config: dict[str, Any] | None = None,
         parents: Iterable[ParentLike] = (),
         *,
+        hashes: Mapping[str, str] | None = None,
         library_versions: dict[str, str | None] | None = None,
         flow_run_id: str | None = None,
         task_run_id: str | None = None,
+        parent_hashes: ParentHashes | None = None,
     ) -> ArtifactRecord:
         """Store a local directory tree (dataset, sharded checkpoint, adapter) as one artifact.
 
         Symlinked files are stored as their content; symlinked directories are refused because
-        following them could loop or pull in an unbounded tree.
+        following them could loop or pull in an unbounded tree. A directory in this store's
+        `staging()` is moved in; `hashes` (member -> sha256 as its writer or reader took it) spare
+        reading those members again there, and must match elsewhere.
         """
         src_dir = os.path.abspath(os.fspath(src_dir))
         if not os.path.isdir(src_dir):
             raise NotADirectoryError(src_dir)
-        members = []
-        for dirpath, dirnames, filenames in os.walk(src_dir):
-            for d in dirnames:
-                if os.path.islink(os.path.join(dirpath, d)):
-                    raise ValueError(f"symlinked directory {os.path.join(dirpath, d)} cannot be stored")
-            for fn in filenames:
-                full = os.path.join(dirpath, fn)
-                members.append((safe_relpath(os.path.relpath(full, src_dir).replace(os.sep, "/")), full))
+        meta = dict(
+            library_versions=library_versions,
+            flow_run_id=flow_run_id,
+            task_run_id=task_run_id,
+            parent_hashes=parent_hashes,
+        )
+        if self._in_staging(src_dir):
+            return self._adopt(src_dir, "dir", kind, name, config, parents, hashes=hashes, **meta)
+        members = _members(src_dir)
         if not members:
             raise ValueError(f"{src_dir} contains no files; an empty artifact is almost certainly a bug")
-        refs = self._resolve_parents(parents)
+        refs = self._resolve_parents(parents, parent_hashes)
         staged = self._stage()
         try:
             entries = []
-            for rel, full in sorted(members):
+            for rel, full in members:
                 dst = posixpath.join(staged, rel)
                 self.fs.makedirs(posixpath.dirname(dst), exist_ok=True)
                 with open(full, "rb", buffering=0) as f:
                     digest, size = self._write_stream(f, dst)
                 entries.append((rel, size, digest))
+            _expect(hashes or {}, entries)
             if self.local:
                 for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _ in members}:
                     _fsync_dir(d)
@@ -452,6 +609,63 @@ class ArtifactStore:
         finally:
             if self.fs.exists(staged):
                 self._discard(staged)
+
+    def _adopt(
+        self,
+        src: str,
+        layout: str,
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None,
+        parents: Iterable[ParentLike],
+        *,
+        filename: str | None = None,
+        sha256: str | None = None,
+        hashes: Mapping[str, str] | None = None,
+        library_versions: dict[str, str | None] | None = None,
+        flow_run_id: str | None = None,
+        task_run_id: str | None = None,
+        parent_hashes: ParentHashes | None = None,
+    ) -> ArtifactRecord:
+        """Commit a file or folder of `staging()` by renaming it (same filesystem, no copy); members
+        without a hash from `hashes`/`sha256` are hashed here. Each file is fsynced before the commit."""
+        refs = self._resolve_parents(parents, parent_hashes)
+        staged = self._p("tmp", uuid.uuid4().hex)
+        if layout == "file":
+            filename = _plain_name(filename or os.path.basename(src))
+            hashes = {filename: sha256} if sha256 else {}
+            os.mkdir(staged)
+            os.rename(src, posixpath.join(staged, filename))
+        else:
+            os.rename(src, staged)
+        try:
+            entries = []
+            for rel, full in _members(staged):
+                st = os.lstat(full)
+                if not stat.S_ISREG(st.st_mode):
+                    raise ValueError(f"{rel} in {src} is not a regular file")
+                fsync_file(full)
+                entries.append((rel, st.st_size, (hashes or {}).get(rel) or hash_file(full)))
+            if not entries:
+                raise ValueError(f"{src} contains no files; an empty artifact is almost certainly a bug")
+            for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _, _ in entries}:
+                _fsync_dir(d)
+            artifact_id = entries[0][2] if layout == "file" else manifest_id(entries)
+            return self._finish(
+                staged,
+                artifact_id,
+                layout,
+                entries,
+                kind,
+                name,
+                config,
+                refs,
+                library_versions,
+                flow_run_id,
+                task_run_id,
+            )
+        finally:
+            self._discard(staged)
 
     # ---------------------------------------------------------------- reading
     def resolve(self, id_or_prefix: str) -> str:
@@ -543,6 +757,46 @@ class ArtifactStore:
             if isinstance(entry, dict) and entry.get("path") in mtimes:
                 entry["mtime_ns"] = mtimes[entry["path"]]
         self._write_small(path, json.dumps(doc, indent=1, ensure_ascii=False).encode())
+
+    def _swap_in(self, staged: str, record: ArtifactRecord, entries: list[tuple[str, int, str]]) -> None:
+        """The same content again, freshly written and hashed: it replaces the stored copy file by file
+        (each rename atomic, the bytes equal either way), so a damaged copy is repaired without first
+        reading it; files the record lacks are removed."""
+        obj, targets = self.object_path(record.id), self._targets(record, entries)
+        mtimes = {}
+        for rel, _, _ in entries:
+            dst = posixpath.join(obj, targets[rel])
+            os.replace(posixpath.join(staged, rel), dst)
+            mtimes[targets[rel]] = os.stat(dst).st_mtime_ns
+        for rel in self._unrecorded_files(record) if record.layout == "dir" else []:
+            full = posixpath.join(obj, rel)
+            shutil.rmtree(full) if os.path.isdir(full) and not os.path.islink(full) else os.unlink(full)
+        for d in {posixpath.dirname(posixpath.join(obj, rel)) for rel in mtimes}:
+            _fsync_dir(d)
+        self._refresh_mtimes(record, mtimes)
+
+    def _swappable(self, record: ArtifactRecord, entries: list[tuple[str, int, str]]) -> bool:
+        """Whether `_swap_in` can put every file in place: its folders are real folders of the object
+        (a symlink could lead the rename outside the store) and nothing but a file is in its way."""
+
+        def real_dir(path: str) -> bool:
+            return os.path.isdir(path) and not os.path.islink(path)
+
+        obj = self.object_path(record.id)
+        for rel in self._targets(record, entries).values():
+            parts = rel.split("/")
+            if not all(real_dir(posixpath.join(obj, *parts[:i])) for i in range(len(parts))):
+                return False
+            if os.path.isdir(posixpath.join(obj, rel)):
+                return False
+        return True
+
+    @staticmethod
+    def _targets(record: ArtifactRecord, entries: list[tuple[str, int, str]]) -> dict[str, str]:
+        """Staged name -> stored name: a single file keeps the name its sidecar recorded."""
+        if record.layout == "file":
+            return {entries[0][0]: record.files[0].path}
+        return {rel: rel for rel, _, _ in entries}
 
     def _repair_with(self, staged: str, record: ArtifactRecord, layout: str, entries: list) -> None:
         """The same content again, over a damaged or missing copy: the fresh bytes replace it.
@@ -645,6 +899,37 @@ class ArtifactStore:
         if member is not None:
             return base / member
         return base / record.files[0].path if record.layout == "file" else base
+
+    def stream_path(self, id_or_prefix: str) -> tuple[Path, ArtifactRecord]:
+        """(local path, record) of an artifact that the caller hashes as it reads it, then checks with
+        `check_read` before it registers anything computed from it: one pass over the bytes instead
+        of a verified `path()` and a read. Here only the seal, sizes and file types are checked.
+        A remote artifact is materialised (hashed while downloading, as `path()` does)."""
+        record = self.get(id_or_prefix)
+        if not self.local:
+            return self.path(record.id), record
+        self._check_present(record)
+        base = Path(self.object_path(record.id))
+        return (base / record.files[0].path if record.layout == "file" else base), record
+
+    def check_read(self, record: ArtifactRecord, path: Path, hashes: Mapping[Path, str]) -> dict[str, str]:
+        """Check an artifact read from `stream_path`'s `path` against its id: `hashes` (file path ->
+        sha256 taken while reading it) for the files read, a hash now for the others; also that no
+        file was swapped for a link or added meanwhile. Raises CorruptArtifact naming the id; returns
+        member -> sha256 (the `parent_hashes` entry of a registration computed from it)."""
+        base = path.parent if record.layout == "file" else path
+        self._check_present(record)
+        out = {}
+        for entry in record.files:
+            full = base / entry.path
+            digest = hashes.get(full) or _hash_local(str(full), entry.sha256)[0]
+            if digest != entry.sha256:
+                raise CorruptArtifact(
+                    record.id,
+                    f"{entry.path}: read as sha256 {digest[:12]}…, recorded {entry.sha256[:12]}…",
+                )
+            out[entry.path] = digest
+        return out
 
     def _materialize(self, record: ArtifactRecord, verify: bool) -> Path:
         """Download a remote artifact into the cache, hashing as it streams.

@@ -4,8 +4,9 @@ Why not `safetensors.torch.load_file`/`save_file`: the first memory-maps whole f
 towards the process's resident memory), the second needs every tensor in memory at once. Checkpoints of a
 7B policy do not fit that, so this module parses the (simple) format itself: an 8-byte little-endian header
 length, a JSON header `{name: {dtype, shape, data_offsets}, "__metadata__": {str: str}}`, then raw
-little-endian bytes. Reading copies one tensor at a time into an owned buffer (`readinto`); writing computes
-every header up front from names, shapes and dtypes, then streams tensor data in that order.
+little-endian bytes. Reading copies one tensor (or a piece of it) at a time into an owned numpy buffer
+(`readinto`); writing computes every header up front from names, shapes and dtypes, then streams tensor
+data in that order. Bytes are numpy arrays (`STORAGE`); torch tensors only where a caller asks for them.
 Before any tensor byte is read, each header is checked as the safetensors library checks it (then opened by
 the library as the reference), and every file an index names must lie inside its folder: what a checkpoint
 id stands for is then exactly the bytes the store copied.
@@ -19,41 +20,80 @@ Layouts understood by `Checkpoint`:
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import math
 import os
+import secrets
 import shutil
 import stat
 import struct
-import tempfile
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+import numpy as np
 from safetensors import SafetensorError, safe_open
+
+if TYPE_CHECKING:
+    import torch
 
 INDEX_NAME = "model.safetensors.index.json"
 SINGLE_NAME = "model.safetensors"
 DEFAULT_MAX_SHARD_BYTES = 2 << 30
+WRITEBACK_BYTES = 32 << 20  # a writer queues its file for writeback every this many bytes
 HEADER_LIMIT = 100_000_000  # the safetensors library's upper bound on header size
 
-DTYPES: dict[str, torch.dtype] = {
-    "F64": torch.float64,
-    "F32": torch.float32,
-    "F16": torch.float16,
-    "BF16": torch.bfloat16,
-    "F8_E4M3": torch.float8_e4m3fn,
-    "F8_E5M2": torch.float8_e5m2,
-    "I64": torch.int64,
-    "I32": torch.int32,
-    "I16": torch.int16,
-    "I8": torch.int8,
-    "U8": torch.uint8,
-    "BOOL": torch.bool,
+# dtype -> the numpy dtype its bytes are read as. No numpy type for bfloat16 and float8: their bits, as
+# unsigned integers (vector_ops converts them). Torch is imported only by the torch-facing methods: it
+# takes seconds, which a CLI command that never builds a tensor should not pay.
+STORAGE: dict[str, np.dtype] = {
+    name: np.dtype(code)
+    for name, code in {
+        "F64": "<f8",
+        "F32": "<f4",
+        "F16": "<f2",
+        "BF16": "<u2",
+        "F8_E4M3": "u1",
+        "F8_E5M2": "u1",
+        "I64": "<i8",
+        "I32": "<i4",
+        "I16": "<i2",
+        "I8": "i1",
+        "U8": "u1",
+        "BOOL": "?",
+    }.items()
 }
-DTYPE_NAMES: dict[torch.dtype, str] = {v: k for k, v in DTYPES.items()}
+FLOATS = frozenset({"F64", "F32", "F16", "BF16", "F8_E4M3", "F8_E5M2"})
+_TORCH_NAMES = {
+    "F64": "float64",
+    "F32": "float32",
+    "F16": "float16",
+    "BF16": "bfloat16",
+    "F8_E4M3": "float8_e4m3fn",
+    "F8_E5M2": "float8_e5m2",
+    "I64": "int64",
+    "I32": "int32",
+    "I16": "int16",
+    "I8": "int8",
+    "U8": "uint8",
+    "BOOL": "bool",
+}
+
+
+def torch_dtype(name: str) -> torch.dtype:
+    import torch
+
+    return getattr(torch, _TORCH_NAMES[name])
+
+
+def dtype_name(dtype: object) -> str | None:
+    """safetensors name of a torch dtype (or of a name already), None if it has none."""
+    if isinstance(dtype, str):
+        return dtype if dtype in STORAGE else None
+    return next((k for k, v in _TORCH_NAMES.items() if str(dtype) == f"torch.{v}"), None)
 
 
 class CheckpointError(ValueError):
@@ -77,7 +117,15 @@ class TensorSpec:
 
     @property
     def torch_dtype(self) -> torch.dtype:
-        return DTYPES[self.dtype]
+        return torch_dtype(self.dtype)
+
+    @property
+    def itemsize(self) -> int:
+        return STORAGE[self.dtype].itemsize
+
+    @property
+    def is_float(self) -> bool:
+        return self.dtype in FLOATS
 
 
 def _regular_size(path: Path) -> int:
@@ -154,7 +202,7 @@ def _specs_of_file(path: Path) -> tuple[dict[str, TensorSpec], dict[str, str]]:
             if field not in v:
                 raise bad(name, f"its header entry has no {field!r}")
         dtype, shape, offsets = v["dtype"], v["shape"], v["data_offsets"]
-        if not isinstance(dtype, str) or dtype not in DTYPES:
+        if not isinstance(dtype, str) or dtype not in STORAGE:
             raise bad(name, f"unsupported dtype {_show(dtype)}")
         if not isinstance(shape, list) or not all(_is_index(d) for d in shape):
             raise bad(name, f"shape must be a list of non-negative integers, not {_show(shape)}")
@@ -163,7 +211,7 @@ def _specs_of_file(path: Path) -> tuple[dict[str, TensorSpec], dict[str, str]]:
         b, e = offsets
         if e < b:
             raise bad(name, f"data_offsets {_show(offsets)} end before they begin")
-        need = math.prod(shape) * DTYPES[dtype].itemsize
+        need = math.prod(shape) * STORAGE[dtype].itemsize
         if e - b != need:
             raise bad(
                 name, f"data_offsets {_show(offsets)} hold {e - b} bytes, {dtype} {_show(shape)} takes {need}"
@@ -190,7 +238,7 @@ def _specs_of_file(path: Path) -> tuple[dict[str, TensorSpec], dict[str, str]]:
             f"{path} has {size - start - end} bytes after its last tensor (the format allows none)"
         )
     try:
-        with safe_open(path, "pt"):
+        with safe_open(path, "np"):
             pass
     except SafetensorError as e:
         first = str(e).splitlines()[0] if str(e) else type(e).__name__
@@ -312,16 +360,19 @@ class Checkpoint:
     def largest_tensor_nbytes(self) -> int:
         return max((s.nbytes for s in self.specs.values()), default=0)
 
-    def read_raw(self, name: str, start: int = 0, stop: int | None = None) -> torch.Tensor:
-        """Read bytes [start, stop) of one tensor into fresh, owned memory (no memory map stays behind)."""
+    def read_bytes(
+        self, name: str, start: int = 0, stop: int | None = None, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Read bytes [start, stop) of one tensor into a fresh, owned uint8 array (no memory map stays),
+        or into the front of `out` (a uint8 array the caller reuses)."""
         spec = self.specs[name]
         stop = spec.nbytes if stop is None else stop
         if not 0 <= start <= stop <= spec.nbytes:
             raise ValueError(f"bytes [{start}, {stop}) are not inside tensor {name!r} ({spec.nbytes} bytes)")
-        buf = torch.empty(stop - start, dtype=torch.uint8)
+        buf = np.empty(stop - start, dtype=np.uint8) if out is None else out[: stop - start]
         with open(spec.file, "rb", buffering=0) as f:
             f.seek(spec.begin + start)
-            view = memoryview(buf.numpy())
+            view = memoryview(buf)
             got = 0
             while got < len(buf):
                 n = f.readinto(view[got:])
@@ -330,10 +381,17 @@ class Checkpoint:
                 got += n
         return buf
 
+    def read_raw(self, name: str, start: int = 0, stop: int | None = None) -> torch.Tensor:
+        """`read_bytes` as a torch uint8 tensor (sharing its memory)."""
+        import torch
+
+        buf = self.read_bytes(name, start, stop)
+        return torch.from_numpy(buf) if buf.size else torch.empty(0, dtype=torch.uint8)  # numpy: stride 0
+
     def chunk_bounds(self, name: str, chunk_bytes: int) -> list[tuple[int, int]]:
         """Byte ranges covering one tensor, each a whole number of elements and at most ~chunk_bytes."""
         spec = self.specs[name]
-        item = torch.empty((), dtype=spec.torch_dtype).element_size()
+        item = spec.itemsize
         step = max(item, chunk_bytes // item * item)
         return [(b, min(b + step, spec.nbytes)) for b in range(0, spec.nbytes, step)] or [(0, 0)]
 
@@ -385,6 +443,22 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _fresh(out: Path, create) -> Path:
+    """A new temporary name beside `out`, created by `create(path)`. Unlike mkstemp/mkdtemp (0600/0700)
+    it gets the permissions the umask gives, which it keeps once renamed to `out` or into a store."""
+    while True:
+        tmp = out.parent / f".{out.name}.tmp-{secrets.token_hex(6)}"
+        try:
+            create(tmp)
+            return tmp
+        except FileExistsError:
+            continue
+
+
+def _new_file(path: Path) -> None:
+    os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+
+
 @contextlib.contextmanager
 def atomic_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary directory next to `out`; on success it is fsynced and renamed to `out`.
@@ -395,7 +469,7 @@ def atomic_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists (pass overwrite=True to replace it)")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    tmp = _fresh(out, os.mkdir)
     try:
         yield tmp
         for f in tmp.iterdir():
@@ -413,6 +487,39 @@ def atomic_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+@functools.cache
+def _sync_file_range():
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL(None, use_errno=True).sync_file_range
+    except (OSError, AttributeError):  # not Linux
+        return None
+    fn.argtypes = (ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint)
+    return fn
+
+
+def start_writeback(fd: int, begin: int, end: int) -> None:
+    """Queue bytes [begin, end) for writing to disk without waiting (Linux's sync_file_range), so that
+    they are written while the rest is computed and the fsync at close finds little left to do."""
+    fn = _sync_file_range()
+    if fn is not None:
+        fn(fd, begin, end - begin, 2)  # SYNC_FILE_RANGE_WRITE
+
+
+def _known_dtype(dtype: object) -> str:
+    name = dtype_name(dtype)
+    if name is None:
+        raise CheckpointError(f"dtype {dtype} cannot be stored in safetensors")
+    return name
+
+
+def _torch_uint8():
+    import torch
+
+    return torch.uint8
 
 
 def _header_bytes(entries: list[tuple[str, str, tuple[int, ...], int, int]], metadata: Mapping[str, str]):
@@ -438,7 +545,7 @@ class ShardedWriter:
     def __init__(
         self,
         out: str | os.PathLike,
-        specs: Mapping[str, tuple[torch.dtype, tuple[int, ...]]],
+        specs: Mapping[str, tuple[torch.dtype | str, tuple[int, ...]]],
         metadata: Mapping[str, str] | None = None,
         max_shard_bytes: int = DEFAULT_MAX_SHARD_BYTES,
         overwrite: bool = False,
@@ -447,8 +554,8 @@ class ShardedWriter:
         self.metadata = dict(metadata or {})
         self.overwrite = overwrite
         self.single_file = self.out.suffix == ".safetensors"
-        sizes = {n: math.prod(s) * torch.empty((), dtype=d).element_size() for n, (d, s) in specs.items()}
-        self._specs = {n: (DTYPE_NAMES[d], tuple(s)) for n, (d, s) in specs.items()}
+        self._specs = {n: (_known_dtype(d), tuple(s)) for n, (d, s) in specs.items()}
+        sizes = {n: math.prod(s) * STORAGE[d].itemsize for n, (d, s) in self._specs.items()}
         shards: list[list[str]] = [[]]
         used = 0
         for name in specs:
@@ -471,6 +578,7 @@ class ShardedWriter:
         self._ctx = None
         self._files: list = []
         self._header_len: list[int] = []
+        self._queued: dict = {}  # file -> offset up to which its writeback was started
 
     @property
     def order(self) -> list[str]:
@@ -488,10 +596,8 @@ class ShardedWriter:
             if self.out.exists() and not self.overwrite:
                 raise FileExistsError(f"{self.out} exists (pass overwrite=True to replace it)")
             self.out.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.out.name}.tmp-", dir=self.out.parent)
-            os.close(fd)
             self._dir = None
-            paths = [Path(tmp)]
+            paths = [_fresh(self.out, _new_file)]
         else:
             self._ctx = atomic_directory(self.out, self.overwrite)
             self._dir = self._ctx.__enter__()
@@ -520,23 +626,33 @@ class ShardedWriter:
         """Append the next tensor; it must be the next name of `order`, with the declared dtype and shape."""
         self._expect(name)
         dtype, shape = self._specs[name]
-        if DTYPE_NAMES.get(tensor.dtype) != dtype or tuple(tensor.shape) != shape:
+        if dtype_name(tensor.dtype) != dtype or tuple(tensor.shape) != shape:
             raise CheckpointError(
                 f"tensor {name!r}: got {tensor.dtype} {tuple(tensor.shape)}, declared {dtype} {shape}"
             )
         self.write_chunks(name, [tensor])
 
     def write_chunks(self, name: str, chunks) -> None:
-        """Append the next tensor from pieces (flat, in order, of its dtype) that add up to its size."""
+        """Append the next tensor from pieces (flat, in order) that add up to its size: torch tensors of
+        its dtype, or numpy arrays of its `STORAGE` dtype."""
         self._expect(name)
         dtype = self._specs[name][0]
         f = self._files[self._shard_of[name]]
         written = 0
         for chunk in chunks:
-            if DTYPE_NAMES.get(chunk.dtype) != dtype:
-                raise CheckpointError(f"tensor {name!r}: got {chunk.dtype}, declared {dtype}")
-            t = chunk.detach().to("cpu").contiguous()
-            written += f.write(memoryview(t.reshape(-1).view(torch.uint8).numpy()))
+            if isinstance(chunk, np.ndarray):
+                if chunk.dtype != STORAGE[dtype]:
+                    raise CheckpointError(f"tensor {name!r}: got {chunk.dtype}, declared {dtype}")
+                raw = np.ascontiguousarray(chunk).reshape(-1).view(np.uint8)
+            else:
+                if dtype_name(chunk.dtype) != dtype:
+                    raise CheckpointError(f"tensor {name!r}: got {chunk.dtype}, declared {dtype}")
+                raw = chunk.detach().to("cpu").contiguous().reshape(-1).view(_torch_uint8()).numpy()
+            written += f.write(memoryview(raw))
+            if f.tell() - self._queued.get(f, 0) >= WRITEBACK_BYTES:
+                f.flush()
+                start_writeback(f.fileno(), self._queued.get(f, 0), f.tell())
+                self._queued[f] = f.tell()
         if written != self._sizes[name]:
             raise CheckpointError(f"tensor {name!r}: wrote {written} bytes, declared {self._sizes[name]}")
         self._pos += 1

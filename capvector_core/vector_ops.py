@@ -2,7 +2,11 @@
 
 All three walk the checkpoints tensor by tensor (memory bounded by a few tensors), so they work on any
 safetensors checkpoint, including a sharded Hugging Face one. Conventions:
-- float16/bfloat16 are computed in float32 and written back in their own dtype (float64 stays float64);
+- float16/bfloat16 are computed in float32 and written back in their own dtype (float64 stays float64),
+  rounded to nearest even; a merge term α·vector is rounded before it is added (as `base + α * vector`
+  is in torch or numpy);
+- the arithmetic is numpy's on the stored bytes (bfloat16 by its bits): torch is not imported, which
+  would take a CLI command longer than streaming a 256 MiB checkpoint;
 - non-float tensors (step counters, index buffers) are carried over when equal in every input, refused
   otherwise;
 - every structural check (keys, shapes, dtypes, filters) runs before anything is written; value checks
@@ -30,22 +34,27 @@ import json
 import math
 import os
 import re
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal
 
-import torch
+import numpy as np
 from pydantic import BaseModel
 
 from capvector_core import module_patterns
 from capvector_core.safetensors_io import (
     DEFAULT_MAX_SHARD_BYTES,
+    FLOATS,
+    STORAGE,
+    WRITEBACK_BYTES,
     Checkpoint,
     CheckpointError,
     ShardedWriter,
     TensorSpec,
     _few,
+    start_writeback,
+    torch_dtype,
 )
 
 PathLike = str | os.PathLike
@@ -71,7 +80,7 @@ def select_names(
 
 
 def _is_float(spec: TensorSpec) -> bool:
-    return spec.torch_dtype.is_floating_point
+    return spec.is_float
 
 
 def _compare(ref: Checkpoint, other: Checkpoint, role: str, names: Iterable[str]) -> None:
@@ -101,83 +110,252 @@ class _HashingReader:
     """Reads tensors of one checkpoint and hashes its files from those same bytes, in a helper thread.
 
     Tensors read in storage order feed the running sha256 of their file; anything out of order (or not
-    read at all) is hashed from disk at the end, so the digest is always the file's true sha256.
+    read at all) is hashed from disk at the end, so the digest is always the file's true sha256. A file
+    replaced or written to while it is read (its inode, size, mtime or ctime moved) is refused: its
+    digest would name bytes other than those computed from. With `copies` (file -> new path), the
+    helper thread also writes each file's bytes there as they are hashed: a copy of exactly the hashed
+    bytes, made while the computation runs rather than before it, and without a second read (a file is
+    copied by the first reader that claims it: its entry is taken out of `copies`).
     """
 
-    def __init__(self, ckpt: Checkpoint, pool: ThreadPoolExecutor):
+    def __init__(self, ckpt: Checkpoint, pool: ThreadPoolExecutor, copies: Mapping[Path, Path] | None = None):
         self.ckpt = ckpt
         self.pool = pool
         self.state: dict[Path, list] = {}
+        self.stats: dict[Path, tuple[int, ...]] = {}
+        self.sinks: dict[Path, _Sink] = {}
         self.pending: Future | None = None
+        self.pending_turn = 0
+        self.ring: list[np.ndarray | None] = [None, None]  # read buffers, reused (see `_buffer`)
+        self.turn = 0
+        self.done: dict[Path, str] | None = None
         for f in ckpt.files:
             h = hashlib.sha256()
             with open(f, "rb") as fh:
+                self.stats[f] = _identity(os.fstat(fh.fileno()))
                 head = fh.read(8)
                 head += fh.read(int.from_bytes(head, "little"))
-            h.update(head)
+            if copies and f in copies:
+                self.sinks[f] = _Sink(copies.pop(f))
+            _take(h, self.sinks.get(f), head, 0)
             self.state[f] = [h, len(head)]
 
-    def chunks(self, name: str, bounds: list[tuple[int, int]]) -> Iterator[torch.Tensor]:
-        """Flat typed pieces of one tensor, read (and hashed) in the byte ranges `bounds`."""
+    def chunks(self, name: str, bounds: list[tuple[int, int]]) -> Iterator[np.ndarray]:
+        """Flat pieces of one tensor (its `STORAGE` dtype), read (and hashed) in the byte ranges `bounds`."""
         spec = self.ckpt.specs[name]
+        sink = self.sinks.get(spec.file)
         for b, e in bounds:
-            raw = self.ckpt.read_raw(name, b, e)
+            raw = self.ckpt.read_bytes(name, b, e, out=self._buffer(e - b))
             st = self.state[spec.file]
             if st[1] is not None and st[1] <= spec.begin + b:
                 self._wait()
                 if st[1] < spec.begin + b:  # bytes skipped (tensors not needed, padding): hash from disk
-                    _hash_range(st[0], spec.file, st[1], spec.begin + b)
-                self.pending = self.pool.submit(st[0].update, memoryview(raw.numpy()))
+                    _hash_range(st[0], spec.file, st[1], spec.begin + b, sink)
+                task = self.pool.submit(_take, st[0], sink, raw, spec.begin + b)
+                self.pending, self.pending_turn = task, self.turn
                 st[1] = spec.begin + e
             else:
-                st[1] = None  # read out of order: hash the whole file from disk at the end
-            yield raw.view(spec.torch_dtype)
+                st[1] = None  # read out of order: hash (and copy) the whole file from disk at the end
+            yield raw.view(STORAGE[spec.dtype])
+
+    def _buffer(self, n: int) -> np.ndarray:
+        """The two read buffers in turn: the other one holds the chunk just handed out, which may still
+        be being hashed. The consumer is done with a chunk when it asks for the next but one (it writes
+        each result before asking again), and a buffer still being hashed is waited for. Fresh
+        multi-MiB arrays would each be page-faulted and zeroed by the kernel."""
+        self.turn ^= 1
+        if self.pending_turn == self.turn:
+            self._wait()
+        buf = self.ring[self.turn]
+        if buf is None or buf.size < n:
+            buf = self.ring[self.turn] = np.empty(max(n, CHUNK_BYTES), np.uint8)
+        return buf
 
     def _wait(self) -> None:
         if self.pending is not None:
             self.pending.result()
             self.pending = None
 
-    def sha256(self) -> str:
+    def file_digests(self) -> dict[Path, str]:
+        """sha256 of each file (of the bytes read; the rest hashed, and copied, from disk now)."""
+        if self.done is not None:
+            return self.done
         self._wait()
         done = {}
         for f, (h, pos) in self.state.items():
-            if pos is not None:
-                _hash_range(h, f, pos, f.stat().st_size)
-                done[f] = h.hexdigest()
-        return self.ckpt.sha256(done)
+            if pos is None:
+                h, pos = hashlib.sha256(), 0
+            _hash_range(h, f, pos, self.stats[f][2], self.sinks.get(f))
+            done[f] = h.hexdigest()
+            if _identity(f.stat()) != self.stats[f]:
+                raise VectorOpError(f"{f} changed while it was being read; run the command again")
+        self.close()
+        self.done = done
+        return done
+
+    def copied(self) -> dict[Path, str]:
+        """copy path -> sha256 of the bytes written there (those hashed)."""
+        digests = self.file_digests()
+        return {sink.path: digests[f] for f, sink in self.sinks.items()}
+
+    def close(self) -> None:
+        self._wait()
+        for sink in self.sinks.values():
+            sink.close()
+
+    def sha256(self) -> str:
+        return self.ckpt.sha256(self.file_digests())
 
 
-def _hash_range(h, path: Path, begin: int, end: int, chunk: int = 8 << 20) -> None:
+class _Sink:
+    """A new file that bytes are written into at their offsets, queued for writeback as it grows (the
+    fsync before it is committed then finds little left to write)."""
+
+    def __init__(self, path: Path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self.fd: int | None = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        self.queued = 0
+
+    def write(self, data, offset: int) -> None:
+        view = memoryview(data).cast("B")
+        while view:
+            n = os.pwrite(self.fd, view, offset)
+            view, offset = view[n:], offset + n
+        if offset - self.queued >= WRITEBACK_BYTES:
+            start_writeback(self.fd, self.queued, offset)
+            self.queued = offset
+
+    def close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def _take(h, sink: _Sink | None, data, offset: int) -> None:
+    """Hash bytes read at `offset` of a file, and copy them to its sink."""
+    h.update(data)
+    if sink is not None:
+        sink.write(data, offset)
+
+
+def _identity(st: os.stat_result) -> tuple[int, ...]:
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def _hash_range(h, path: Path, begin: int, end: int, sink: _Sink | None = None, chunk: int = 8 << 20) -> None:
     with open(path, "rb") as f:
         f.seek(begin)
         while begin < end:
             data = f.read(min(chunk, end - begin))
             if not data:
                 break
-            h.update(data)
+            _take(h, sink, data, begin)
             begin += len(data)
 
 
-def _sum_is_finite(t: torch.Tensor) -> bool:
-    # A sum is non-finite iff some element is (NaN/Inf propagate): far cheaper than isfinite().all().
-    wide = torch.float64 if t.dtype == torch.float64 else torch.float32
-    return math.isfinite(float(t.sum(dtype=wide)))
+class _Scratch:
+    """Work arrays reused from chunk to chunk (each result is written before the next chunk is
+    computed): fresh multi-MiB arrays would each be page-faulted and zeroed by the kernel."""
+
+    def __init__(self) -> None:
+        self.bufs: dict[str, np.ndarray] = {}
+
+    def __call__(self, key: str, n: int, dtype: type | np.dtype) -> np.ndarray:
+        need = n * np.dtype(dtype).itemsize
+        buf = self.bufs.get(key)
+        if buf is None or buf.size < need:
+            buf = self.bufs[key] = np.empty(need, np.uint8)
+        return buf[:need].view(dtype)
 
 
-def _finite_or_raise(t: torch.Tensor, name: str, role: str) -> None:
-    if t.is_floating_point() and not _sum_is_finite(t) and not bool(torch.isfinite(t).all()):
+def _wide(dtype: str) -> type:
+    """The dtype a stored dtype is computed in."""
+    return np.float64 if dtype == "F64" else np.float32
+
+
+def _widen(x: np.ndarray, dtype: str, out: np.ndarray | None = None) -> np.ndarray:
+    """Stored values as float32 (float64 for F64) to compute with: F32/F64 as they are, else converted
+    (into `out` when given)."""
+    if dtype in ("F32", "F64"):
+        return x
+    if dtype == "F16":
+        if out is None:
+            return x.astype(np.float32)
+        np.copyto(out, x)
+        return out
+    if dtype == "BF16":  # the 16 bits are the high half of a float32
+        bits = None if out is None else out.view(np.uint32)
+        return np.left_shift(x, 16, dtype=np.uint32, out=bits).view(np.float32)
+    return _via_torch(x, dtype, "F32")
+
+
+def _narrow(acc: np.ndarray, dtype: str, scratch: _Scratch | None = None) -> np.ndarray:
+    """A float32/64 result as stored values of `dtype`, rounded to nearest even (as torch rounds)."""
+    if dtype in ("F32", "F64"):
+        return acc
+    scratch = scratch or _Scratch()
+    out = scratch("narrow", acc.size, STORAGE[dtype])
+    if dtype == "F16":
+        with np.errstate(over="ignore"):  # an overflow to Inf is refused by the caller, naming the tensor
+            np.copyto(out, acc, casting="same_kind")
+        return out
+    if dtype == "BF16":  # round the 16 dropped bits to nearest even (acc is finite: no NaN to keep)
+        bits = acc.view(np.uint32)
+        rounded = np.right_shift(bits, 16, out=scratch("round", acc.size, np.uint32))
+        rounded &= 1
+        rounded += 0x7FFF
+        rounded += bits
+        np.copyto(out, rounded.view(np.uint16)[1::2])  # the high halves (little-endian, as safetensors)
+        return out
+    return _via_torch(acc, "F32", dtype)
+
+
+def _via_torch(x: np.ndarray, src: str, dst: str) -> np.ndarray:
+    """float8 conversions, which numpy lacks (rare enough to pay torch's import)."""
+    import torch
+
+    out = torch.from_numpy(x).view(torch_dtype(src)).to(torch_dtype(dst))
+    return out.view(torch.uint8).numpy() if STORAGE[dst] == np.uint8 else out.numpy()
+
+
+def _all_finite(x: np.ndarray) -> bool:
+    """No NaN or Inf in a float32/64 array. A sum is non-finite iff some element is (NaN/Inf propagate)
+    or it overflows: far cheaper than isfinite().all(), which only then decides."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        if math.isfinite(x.sum()):
+            return True
+    return bool(np.isfinite(x).all())
+
+
+def _stored_finite(x: np.ndarray, dtype: str) -> bool:
+    if dtype not in FLOATS:
+        return True
+    if dtype == "BF16":  # all exponent bits set (Inf, NaN): the magnitude bits reach 0x7F80
+        return x.size == 0 or int((x & 0x7FFF).max()) < 0x7F80
+    return _all_finite(_widen(x, dtype))
+
+
+def _finite_or_raise(x: np.ndarray, dtype: str, name: str, role: str) -> None:
+    if not _stored_finite(x, dtype):
         raise VectorOpError(f"NaN or Inf in tensor {name!r} of {role}")
 
 
-def _cast_back(acc: torch.Tensor, dtype: torch.dtype, name: str, inputs: list[tuple[str, torch.Tensor]]):
-    """Cast a float32/64 result to the output dtype; if it is not finite, name the input responsible."""
-    out = acc if acc.dtype == dtype else acc.to(dtype)
-    if not _sum_is_finite(out) and not bool(torch.isfinite(out).all()):
-        for role, t in inputs:
-            _finite_or_raise(t, name, role)
-        raise VectorOpError(f"result for tensor {name!r} overflows {dtype}")
-    return out
+def _cast_back(
+    acc: np.ndarray,
+    dtype: str,
+    name: str,
+    inputs: list[tuple[str, np.ndarray]],
+    scratch: _Scratch | None = None,
+) -> np.ndarray:
+    """Round a float32/64 result to the output dtype; if it is not finite, name the input responsible."""
+    if _all_finite(acc):
+        out = _narrow(acc, dtype, scratch)
+        if dtype in ("F32", "F64") or _stored_finite(out, dtype):
+            return out
+    for role, x in inputs:
+        _finite_or_raise(x, dtype, name, role)
+    raise VectorOpError(f"result for tensor {name!r} overflows {dtype}")
 
 
 def _inputs_meta(readers: dict[str, _HashingReader]) -> dict[str, dict[str, str]]:
@@ -196,11 +374,12 @@ def _run(
     max_shard_bytes: int,
     overwrite: bool,
     check=None,
+    hashes: dict[Path, str] | None = None,
 ) -> Path:
     """Stream `compute(name) -> flat pieces` for every name into `out`, then fill in the input hashes."""
     inputs = _inputs_meta(readers)
     metadata = {**metadata, "capvector.inputs": json.dumps(inputs, sort_keys=True)}
-    specs = {n: (ref.specs[n].torch_dtype, ref.specs[n].shape) for n in names}
+    specs = {n: (ref.specs[n].dtype, ref.specs[n].shape) for n in names}
     with ShardedWriter(out, specs, metadata, max_shard_bytes, overwrite) as w:
         for n in w.order:
             w.write_chunks(n, compute(n))
@@ -210,16 +389,40 @@ def _run(
         for role, d in digests.items():
             inputs[role]["sha256"] = d
         w.set_metadata("capvector.inputs", json.dumps(inputs, sort_keys=True))
+    if hashes is not None:
+        for r in readers.values():
+            _record(hashes, r.file_digests() | r.copied())
     return Path(out)
 
 
-def _resolve_hash(x: PathLike | None) -> str | None:
+def _resolve_hash(
+    x: PathLike | None, hashes: dict[Path, str] | None, copies: Mapping[Path, Path] | None
+) -> str | None:
     if x is None:
         return None
     s = str(x)
     if re.fullmatch(r"[0-9a-f]{64}", s) and not Path(s).exists():
         return s
-    return Checkpoint(s).sha256()
+    ckpt = Checkpoint(s)
+    digests = {}
+    for f in ckpt.files:
+        h, sink = hashlib.sha256(), _Sink(copies.pop(f)) if copies and f in copies else None
+        try:
+            _hash_range(h, f, 0, f.stat().st_size, sink)
+        finally:
+            if sink is not None:
+                sink.close()
+        digests[f] = h.hexdigest()
+        if hashes is not None:
+            _record(hashes, {f: digests[f]} | ({sink.path: digests[f]} if sink else {}))
+    return ckpt.sha256(digests)
+
+
+def _record(hashes: dict[Path, str], digests: dict[Path, str]) -> None:
+    """Add digests; a file read twice (as minuend and base, say) must have given the same bytes."""
+    for path, digest in digests.items():
+        if hashes.setdefault(path, digest) != digest:
+            raise VectorOpError(f"{path} changed while it was being read; run the command again")
 
 
 def extract(
@@ -231,34 +434,42 @@ def extract(
     base: PathLike | None = None,
     max_shard_bytes: int = DEFAULT_MAX_SHARD_BYTES,
     overwrite: bool = False,
+    hashes: dict[Path, str] | None = None,
+    copies: Mapping[Path, Path] | None = None,
 ) -> Path:
     """Write the vector `minuend − subtrahend` (capability vector θ_ao − θ_ft, or task vector θ − θ_pt).
 
     `base` (a checkpoint path or a sha256) records the θ_pt the vector is meant for, so that `merge` can
     refuse another base; for a task vector it is the subtrahend. With a filter the vector holds only the
-    selected tensors and is marked `capvector.partial`.
+    selected tensors and is marked `capvector.partial`. `hashes` receives the sha256 of every input file
+    as it was read (a caller checks stored inputs with them); `copies` (input file -> new path) has a
+    copy of each named file written as it is read, and `hashes` the sha256 of each copy path (a caller
+    stores the copies under them: exactly the bytes computed from, read once).
     """
     a, b = Checkpoint(minuend), Checkpoint(subtrahend)
     _key_diff(a, b, f"subtrahend {b.path}")
     names = select_names(a.keys(), include, exclude)
     _compare(a, b, f"subtrahend {b.path}", names)
-    base_hash = _resolve_hash(base)
+    copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
+    base_hash = _resolve_hash(base, hashes, copies)
     pool = ThreadPoolExecutor(1)
-    ra, rb = _HashingReader(a, pool), _HashingReader(b, pool)
+    ra, rb = _HashingReader(a, pool, copies), _HashingReader(b, pool, copies)
 
-    def compute(n: str) -> Iterator[torch.Tensor]:
-        bounds = a.chunk_bounds(n, CHUNK_BYTES)
+    scratch = _Scratch()
+
+    def compute(n: str) -> Iterator[np.ndarray]:
+        bounds, dtype = a.chunk_bounds(n, CHUNK_BYTES), a.specs[n].dtype
         for x, y in zip(ra.chunks(n, bounds), rb.chunks(n, bounds), strict=True):
-            if not x.is_floating_point():
-                if not torch.equal(x, y):
+            if dtype not in FLOATS:
+                if not np.array_equal(x, y):
                     raise VectorOpError(f"non-float tensor {n!r} differs between minuend and subtrahend")
                 yield x
                 continue
             # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
-            wide = torch.float64 if x.dtype == torch.float64 else torch.float32
-            xw = x.to(wide)
-            acc = xw.sub(y) if xw is x else xw.sub_(y.to(wide))
-            yield _cast_back(acc, x.dtype, n, [("minuend", x), ("subtrahend", y)])
+            k, wide = x.size, _wide(dtype)
+            xw, yw = _widen(x, dtype, scratch("x", k, wide)), _widen(y, dtype, scratch("y", k, wide))
+            acc = np.subtract(xw, yw, out=scratch("acc", k, wide))
+            yield _cast_back(acc, dtype, n, [("minuend", x), ("subtrahend", y)], scratch)
 
     meta = {
         "capvector.kind": "vector",
@@ -270,10 +481,12 @@ def extract(
     }
     if base_hash:
         meta["capvector.base_sha256"] = base_hash
+    readers = {"minuend": ra, "subtrahend": rb}
     try:
-        readers = {"minuend": ra, "subtrahend": rb}
-        return _run(out, names, a, readers, meta, compute, max_shard_bytes, overwrite)
+        return _run(out, names, a, readers, meta, compute, max_shard_bytes, overwrite, hashes=hashes)
     finally:
+        for r in readers.values():
+            r.close()
         pool.shutdown()
 
 
@@ -286,6 +499,8 @@ def merge(
     force: bool = False,
     max_shard_bytes: int = DEFAULT_MAX_SHARD_BYTES,
     overwrite: bool = False,
+    hashes: dict[Path, str] | None = None,
+    copies: Mapping[Path, Path] | None = None,
 ) -> Path:
     """Write θ = base + Σ_i α_i·vector_i (θ_meta = θ_pt + α·γ); tensors outside the filter are base's.
 
@@ -294,7 +509,8 @@ def merge(
     `force=True`; base's hash is computed while streaming, so that check happens at the end, before the
     output is renamed into place. The output keeps base's metadata but for base's own provenance
     (`capvector.*` keys other than `CARRIED_KEYS`, which would be false of the output), so a merged policy
-    checkpoint loads as its base does (`capvector_core.policy.load_policy`).
+    checkpoint loads as its base does (`capvector_core.policy.load_policy`). `hashes`, `copies`: as in
+    `extract`.
     """
     if not vectors:
         raise VectorOpError("merge needs at least one (vector, coefficient) pair")
@@ -310,11 +526,13 @@ def merge(
     names = b.keys()
     selected = set(select_names(names, include, exclude))
     pool = ThreadPoolExecutor(1)
-    rb = _HashingReader(b, pool)
-    rvs = [_HashingReader(v, pool) for v, _ in vecs]
+    copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
+    rb = _HashingReader(b, pool, copies)
+    rvs = [_HashingReader(v, pool, copies) for v, _ in vecs]
+    scratch = _Scratch()
 
-    def compute(n: str) -> Iterator[torch.Tensor]:
-        bounds = b.chunk_bounds(n, CHUNK_BYTES)
+    def compute(n: str) -> Iterator[np.ndarray]:
+        bounds, dtype = b.chunk_bounds(n, CHUNK_BYTES), b.specs[n].dtype
         users = [(i, r, a) for i, (r, (v, a)) in enumerate(zip(rvs, vecs, strict=True)) if n in v]
         if n not in selected:
             users = []
@@ -322,21 +540,24 @@ def merge(
         for x in rb.chunks(n, bounds):
             terms = [(i, next(it), a) for i, it, a in streams]
             if not terms:
-                _finite_or_raise(x, n, "base")
+                _finite_or_raise(x, dtype, n, "base")
                 yield x
                 continue
-            if not x.is_floating_point():
+            if dtype not in FLOATS:
                 for i, y, _ in terms:
-                    if not torch.equal(x, y):
+                    if not np.array_equal(x, y):
                         raise VectorOpError(f"non-float tensor {n!r} differs between base and vector {i}")
                 yield x
                 continue
-            wide = torch.float64 if x.dtype == torch.float64 else torch.float32
-            acc = None  # fresh memory: x and y may still be being hashed in the helper thread
-            for _, y, a in terms:
-                y = y.to(wide)
-                acc = torch.add(x.to(wide), y, alpha=a) if acc is None else acc.add_(y, alpha=a)
-            yield _cast_back(acc, x.dtype, n, [("base", x)] + [(f"vector {i}", y) for i, y, _ in terms])
+            # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
+            k, wide = x.size, _wide(dtype)
+            xw, acc = _widen(x, dtype, scratch("x", k, wide)), scratch("acc", k, wide)
+            for j, (_, y, a) in enumerate(terms):
+                yw = _widen(y, dtype, scratch("y", k, wide))
+                term = np.multiply(yw, wide(a), out=scratch("term", k, wide))
+                np.add(acc if j else xw, term, out=acc)
+            inputs = [("base", x)] + [(f"vector {i}", y) for i, y, _ in terms]
+            yield _cast_back(acc, dtype, n, inputs, scratch)
 
     def check(digests: dict[str, str]) -> None:
         for i, (v, _) in enumerate(vecs):
@@ -358,8 +579,10 @@ def merge(
     }
     readers = {"base": rb, **{f"vector_{i}": r for i, r in enumerate(rvs)}}
     try:
-        return _run(out, names, b, readers, meta, compute, max_shard_bytes, overwrite, check)
+        return _run(out, names, b, readers, meta, compute, max_shard_bytes, overwrite, check, hashes)
     finally:
+        for r in readers.values():
+            r.close()
         pool.shutdown()
 
 
@@ -410,17 +633,18 @@ def stats(
     acc: dict[tuple[str, str], dict[str, float]] = {}
     rows = []
     for n in names:
-        g = v.get(n).double().flatten()
-        _finite_or_raise(g, n, "vector")
+        g = _float64(v, n)
+        if not _all_finite(g):
+            raise VectorOpError(f"NaN or Inf in tensor {n!r} of vector")
         s = dict.fromkeys(fields, 0.0)
-        s["numel"], s["sq"] = g.numel(), float(g @ g)
+        s["numel"], s["sq"] = g.size, float(g @ g)
         if "base" in others:
-            w = others["base"].get(n).double().flatten()
+            w = _float64(others["base"], n)
             s["bsq"] = float(w @ w)
         if "reference_vector" in others:
-            r = others["reference_vector"].get(n).double().flatten()
+            r = _float64(others["reference_vector"], n)
             s["rsq"], s["dot"] = float(r @ r), float(g @ r)
-            sg, sr = torch.sign(g), torch.sign(r)
+            sg, sr = np.sign(g), np.sign(r)
             both = (sg != 0) & (sr != 0)
             s["both"], s["agree"] = float(both.sum()), float(((sg == sr) & both).sum())
         rows.append(_row("tensor", n, s, others))
@@ -430,6 +654,11 @@ def stats(
                 tot[f] += s[f]
     rows += [_row(level, name, s, others) for (level, name), s in acc.items()]
     return rows
+
+
+def _float64(ckpt: Checkpoint, name: str) -> np.ndarray:
+    dtype = ckpt.specs[name].dtype
+    return _widen(ckpt.read_bytes(name).view(STORAGE[dtype]), dtype).astype(np.float64, copy=False)
 
 
 def _row(level: str, name: str, s: dict[str, float], others: dict) -> VectorStat:

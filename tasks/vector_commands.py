@@ -1,32 +1,51 @@
 """Vector arithmetic on any safetensors checkpoints (a file, a sharded directory or an artifact id),
 with inputs and outputs registered in the catalogue so that the lineage stays complete.
 
-A command validates and computes first, and registers only what it computed: every input is checked
-and the result written into a scratch folder of the home (never the user's folder); then the outside
-inputs are imported, the output is registered with them as parents, and only then is it put at `-o`.
-So a command that fails (a bad input, a mismatch, NaN, a kill) registers nothing and leaves nothing
-in the user's folder. An `-o` that exists already is refused, unless its bytes are exactly what the
-command computed (the identical re-run after a kill between writing and registering): then that output
-is registered as it is.
+A command validates and computes first, and registers only what it computed. Every byte is read once:
+- an artifact id is read from the store's own files, hashed while it is read, and those hashes are
+  checked against its id before anything is registered (`ArtifactStore.stream_path`/`check_read`);
+- a path is read where it is, hashed as it is read, and the same bytes are written into a copy in the
+  store's staging area while the computation runs (other files of a folder: copied by the kernel).
+  Once the command succeeds the copy is registered under those hashes by a rename, so the parent edge
+  names exactly the bytes the output came from; a header that changed between its check and its read
+  shows in the copy and is refused;
+- the output is written into the staging area too, hashed once, committed by a rename, and copied
+  to `-o` (beside it under a temporary name while it is registered, renamed into place after).
+So a command that fails (a bad input, a mismatch, NaN, a damaged artifact, a kill) registers nothing and
+leaves nothing in the user's folder. An `-o` that exists already is refused, unless its bytes are
+exactly what the command computed (the identical re-run after a kill between registering and placing
+it): then that output is registered as it is.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import shutil
+import sys
+import threading
 import uuid
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+from artifacts.hashing import hash_file
 from artifacts.records import ArtifactRecord
+from artifacts.store import copy_file, copy_in, flush_soon, fsync_file
 from capvector_core import vector_ops
-from capvector_core.safetensors_io import Checkpoint, CheckpointError, file_sha256
+from capvector_core.safetensors_io import Checkpoint, CheckpointError
 from capvector_core.vector_ops import VectorStat
-from tasks.vectors import stat_rows
-from tasks.workspace import Workspace, provenance
+from tasks.workspace import Workspace, library_versions, provenance
+
+
+def _provenance() -> dict[str, Any]:
+    """`provenance()`, without importing Prefect (~2 s) only to learn that this is no Prefect run."""
+    if "prefect" not in sys.modules:
+        return {"library_versions": library_versions(), "flow_run_id": None, "task_run_id": None}
+    return provenance()
 
 
 def import_path(
@@ -36,64 +55,137 @@ def import_path(
     path = Path(path)
     Checkpoint(path)  # refuses truncated files and missing shards before anything is stored
     register = workspace.api.register_dir if path.is_dir() else workspace.api.register_file
-    return register(
-        path, kind=kind, name=name or path.name, config={"imported_from": str(path.resolve())}, **provenance()
-    )
+    config = {"imported_from": str(path.resolve())}
+    return register(path, kind=kind, name=name or path.name, config=config, **_provenance())
 
 
 @dataclass(frozen=True)
 class Input:
     """A command's input, located and validated but not registered yet."""
 
-    path: Path  # where to read it: the user's path, or the store's verified copy of an artifact
-    artifact_id: str | None  # None: an outside path, imported only once the command has succeeded
+    path: Path  # what is read: a stored artifact's own files, or the user's path (or its copy)
     kind: str
+    record: ArtifactRecord | None = None  # stored: checked against it once read (`check_read`)
+    source: Path | None = None  # a path: the user's, imported (its copy) once the command succeeds
+    copy: Path | None = None  # its copy in the staging area
+    copies: dict[Path, Path] = field(default_factory=dict)  # checkpoint file -> copy, written as read
+    layout: tuple | None = None  # its tensors and metadata as validated
 
 
-def locate(workspace: Workspace, ref: str, kind: str = "checkpoint") -> Input:
-    """A path (validated as a checkpoint, not imported) or an artifact id (its verified store copy)."""
-    if Path(ref).exists():
-        Checkpoint(ref)  # truncated files, missing shards: refused before anything is computed
-        return Input(Path(ref), None, kind)
-    record = workspace.api.get(ref)
-    return Input(workspace.path(record.id), record.id, kind)
+def locate(
+    workspace: Workspace, ref: str, stage: Path, kind: str = "checkpoint", copy_now: bool = False
+) -> Input:
+    """An artifact id (its stored files) or a path (validated; copied into `stage` as the computation
+    reads it, or at once with `copy_now`, for a computation that does not hash what it reads)."""
+    if not Path(ref).exists():
+        path, record = workspace.api.store.stream_path(ref)
+        return Input(path, kind, record=record)
+    src = Path(ref)
+    ckpt = Checkpoint(src)  # bad headers, missing or escaping shards: refused before anything is read
+    copy = stage / uuid.uuid4().hex / src.name
+    copy.parent.mkdir()
+    if copy_now:
+        copy_in(src, copy)
+        return Input(copy, kind, source=src, copy=copy, layout=_layout(ckpt))
+    if src.is_dir():  # the shards are copied as they are read; the index and any other file now
+        copies = {f: copy / f.relative_to(src) for f in ckpt.files}
+        copy_in(src, copy, skip={f.relative_to(src).as_posix() for f in ckpt.files})
+    else:
+        copies = {src: copy}
+    return Input(src, kind, source=src, copy=copy, copies=copies, layout=_layout(ckpt))
 
 
-def commit_input(workspace: Workspace, item: Input, digest: str | None = None) -> str:
-    """The artifact id of an input, importing an outside path now. `digest`: the checkpoint digest
-    (`Checkpoint.sha256`) of the bytes the command read; an import of other bytes (the file changed in
-    between) is refused, so the output's parent edge always names the bytes it was computed from."""
-    if item.artifact_id is not None:
-        return item.artifact_id
-    record = import_path(workspace, item.path, item.kind)
-    if digest is not None and _checkpoint_digest(workspace, record) != digest:
-        raise CheckpointError(
-            f"{item.path} changed while it was being read (imported as {record.id[:12]}…, but the output "
-            f"was computed from {digest[:12]}…); run the command again"
-        )
+def _layout(ckpt: Checkpoint) -> tuple:
+    """What a checkpoint's validated header says (tensors, where they lie, metadata)."""
+    root = ckpt.path if ckpt.path.is_dir() else ckpt.path.parent
+    where = {n: (s.file.relative_to(root).as_posix(), s.begin, s.end) for n, s in ckpt.specs.items()}
+    return {n: (s.dtype, s.shape, *where[n]) for n, s in ckpt.specs.items()}, ckpt.metadata
+
+
+def _check_copy(item: Input) -> None:
+    """The copy of a path must show the tensors that were validated and read: a path changed between
+    (a header rewritten, an index swapped) is refused."""
+    if item.copy is not None and _layout(Checkpoint(item.copy)) != item.layout:
+        raise CheckpointError(f"{item.source} changed while it was being read; run the command again")
+
+
+def _locate_all(
+    workspace: Workspace, refs: list[tuple[str | None, str]], stage: Path, copy_now: bool = False
+) -> list[Input | None]:
+    """`locate` each (ref, kind) at once (None for a ref of None; one Input for a ref named twice):
+    copies made now run side by side (the kernel copies, the interpreter is free)."""
+    key = {ref: os.path.realpath(ref) if Path(ref).exists() else ref for ref, _ in refs if ref is not None}
+    unique = {key[ref]: (ref, kind) for ref, kind in reversed(refs) if ref is not None}
+
+    def one(ref: str, kind: str) -> Input:
+        return locate(workspace, ref, stage, kind, copy_now)
+
+    with ThreadPoolExecutor(max(len(unique), 1)) as pool:
+        found = dict(zip(unique, pool.map(one, *zip(*unique.values(), strict=True)), strict=True))
+    return [None if ref is None else found[key[ref]] for ref, _ in refs]
+
+
+def _check_stored(workspace: Workspace, inputs: list[Input], hashes: dict[Path, str]) -> dict:
+    """Stored inputs against their ids, by the hashes taken while reading them (files not read are
+    hashed now); CorruptArtifact before anything is registered. Returns `parent_hashes`."""
+    store = workspace.api.store
+    return {i.record.id: store.check_read(i.record, i.path, hashes) for i in inputs if i.record is not None}
+
+
+@contextlib.contextmanager
+def _blaming_damage(workspace: Workspace, inputs: list[Input]) -> Iterator[None]:
+    """A computation that fails on a damaged stored input (NaN from a flipped bit, a torn header)
+    reports the damage, not its symptom."""
+    try:
+        yield
+    except (CheckpointError, ValueError, OSError):
+        _check_stored(workspace, inputs, {})
+        raise
+
+
+def _commit(workspace: Workspace, items: list[Input], hashes: dict[Path, str], verified: dict) -> dict:
+    """id(input) -> its artifact id; a path's copy is registered now, under the hashes of the bytes
+    written into it (`vector_ops` copies what it hashes; members it did not copy are hashed by the
+    store)."""
+    return {id(item): _commit_one(workspace, item, hashes, verified) for item in items}
+
+
+def _commit_one(workspace: Workspace, item: Input, hashes: dict[Path, str], verified: dict) -> str:
+    if item.record is not None:
+        return item.record.id
+    if item.copy.is_dir():
+        register, kw = workspace.api.register_dir, {"hashes": _relative(item.copy, hashes)}
+    else:
+        register, kw = workspace.api.register_file, {"sha256": hashes.get(item.copy)}
+    record = register(
+        item.copy,
+        kind=item.kind,
+        name=item.source.name,
+        config={"imported_from": str(item.source.resolve())},
+        **kw,
+        **_provenance(),
+    )
+    verified[record.id] = {f.path: f.sha256 for f in record.files}
     return record.id
 
 
-def resolve(workspace: Workspace, ref: str, kind: str = "checkpoint") -> tuple[Path, str]:
-    """(local path, artifact id) for a path or an artifact id; paths are imported."""
-    item = locate(workspace, ref, kind)
-    artifact_id = commit_input(workspace, item)
-    return workspace.path(artifact_id), artifact_id
+def _relative(root: Path, hashes: dict[Path, str]) -> dict[str, str]:
+    return {f.relative_to(root).as_posix(): h for f, h in hashes.items() if f.is_relative_to(root)}
 
 
-def _checkpoint_digest(workspace: Workspace, record: ArtifactRecord) -> str:
-    """`Checkpoint.sha256` of a stored checkpoint, from the file digests its record already holds."""
-    root = workspace.path(record.id)
-    base = root if record.layout == "dir" else root.parent
-    return Checkpoint(root).sha256({base / f.path: f.sha256 for f in record.files})
+def _output_hashes(staged: Path) -> dict[str, str]:
+    """member -> sha256 of a freshly written output (a file: its own name)."""
+    if staged.is_file():
+        return {staged.name: hash_file(str(staged))}
+    return {f.relative_to(staged).as_posix(): hash_file(str(f)) for f in staged.rglob("*") if f.is_file()}
 
 
 def _manifest(path: Path) -> list[tuple[str, int, str]]:
     """(relative path, size, sha256) of every file: what "the same bytes" means for a file or a folder."""
     if path.is_file():
-        return [("", path.stat().st_size, file_sha256(path))]
+        return [("", path.stat().st_size, hash_file(str(path)))]
     return sorted(
-        (f.relative_to(path).as_posix(), f.stat().st_size, file_sha256(f))
+        (f.relative_to(path).as_posix(), f.stat().st_size, hash_file(str(f)))
         for f in path.rglob("*")
         if f.is_file()
     )
@@ -109,37 +201,62 @@ def _refuse_existing(out: Path) -> None:
         raise FileExistsError(f"output {out} already exists; choose another path or remove it") from None
 
 
-def _refuse_unless_identical(out: Path, staged: Path) -> None:
+def _refuse_unless_identical(out: Path, staged: Path, digests: dict[str, str]) -> None:
     """An existing `-o` is accepted only when its bytes are exactly the computed output's."""
     if not os.path.lexists(out):
         return
-    same = out.is_dir() == staged.is_dir() and not out.is_symlink() and _manifest(out) == _manifest(staged)
-    if not same:
+    if staged.is_file():
+        mine = [("", staged.stat().st_size, digests[staged.name])]
+    else:
+        mine = sorted((rel, (staged / rel).stat().st_size, h) for rel, h in digests.items())
+    if out.is_dir() != staged.is_dir() or out.is_symlink() or _manifest(out) != mine:
         raise FileExistsError(
             f"output {out} already exists and differs from what this command computes; "
             "choose another path or remove it"
         )
 
 
-def _place(staged: Path, out: Path) -> None:
-    """Put the registered output at `out` (if it is there already, it is identical: checked before).
+@contextlib.contextmanager
+def _placing(staged: Path, out: Path) -> Iterator[None]:
+    """Put the output at `out` once the block (its registration) succeeds.
 
-    Copied under a temporary name beside `out`, then renamed (never over something that appeared in
-    the meantime); on any failure the temporary copy is removed, so nothing half-written is left in
-    the user's folder."""
+    A helper thread copies it beside `out` under a temporary name and fsyncs it while the block runs
+    (its files are opened first: the block moves them into the store); then the copy is renamed into
+    place, never over something that appeared meanwhile. On any failure the copy is removed, so
+    nothing half-written is left in the user's folder. An `out` that is there already is identical
+    (checked before) and left as it is."""
     if os.path.lexists(out):
+        yield
         return
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:12]}"
+    names = sorted(f.name for f in staged.iterdir()) if staged.is_dir() else [None]
+    failed: list[BaseException] = []
+    with contextlib.ExitStack() as files:
+        sources = [files.enter_context(open(staged / n if n else staged, "rb")) for n in names]
+
+        def copy() -> None:
+            try:
+                if staged.is_dir():
+                    tmp.mkdir()
+                for n, f in zip(names, sources, strict=True):
+                    copy_file(f, tmp / n if n else tmp)
+                    fsync_file(tmp / n if n else tmp)
+            except BaseException as e:  # raised again in the command's thread
+                failed.append(e)
+
+        worker = threading.Thread(target=copy, daemon=True)
+        worker.start()
+        try:
+            yield
+        finally:
+            worker.join()
     try:
-        if staged.is_dir():
-            shutil.copytree(staged, tmp)
-            for f in tmp.iterdir():
-                _fsync(f)
+        if failed:
+            raise failed[0]
+        if tmp.is_dir():
             _rename_new(tmp, out)
         else:
-            shutil.copyfile(staged, tmp)
-            _fsync(tmp)
             try:
                 os.link(tmp, out)  # atomic, and never replaces a file (FileExistsError)
             except FileExistsError:
@@ -161,22 +278,41 @@ def _appeared(out: Path) -> FileExistsError:
     return FileExistsError(f"output {out} appeared while the command ran; it was left as it is")
 
 
-def _fsync(path: Path) -> None:
-    with open(path, "rb") as f:
-        os.fsync(f.fileno())
-
-
-def _input_digests(staged: Path) -> dict[str, str]:
-    """role -> sha256 of the bytes each input was read as (the output's `capvector.inputs`)."""
-    inputs = json.loads(Checkpoint(staged).metadata.get("capvector.inputs", "{}"))
-    return {role: entry["sha256"] for role, entry in inputs.items()}
-
-
-def _register_output(
-    workspace: Workspace, staged: Path, kind: str, name: str, config: dict, parents: list
+def _produce(
+    workspace: Workspace,
+    stage: Path,
+    out: Path,
+    inputs: list[tuple[Input, str, dict[str, Any]]],
+    compute: Callable[[Path, dict[Path, str], dict[Path, Path]], Path],
+    kind: str,
+    config: dict[str, Any],
 ) -> ArtifactRecord:
-    register = workspace.api.register_dir if staged.is_dir() else workspace.api.register_file
-    return register(staged, kind=kind, name=name, config=config, parents=parents, **provenance())
+    """Compute into the staging area, check the stored inputs by what was read, register the copied
+    inputs and then the output (committed by a rename), and put it at `out`."""
+    items = list({id(item): item for item, _, _ in inputs}.values())  # an input named twice is read once
+    copies = {f: c for item in items for f, c in item.copies.items()}
+    hashes: dict[Path, str] = {}
+    (stage / "output").mkdir()
+    with _blaming_damage(workspace, items):
+        staged = compute(stage / "output" / out.name, hashes, copies)
+    for copy in copies.values():  # the fsync before their commit: started now, run while the output is hashed
+        flush_soon(copy)
+    verified = _check_stored(workspace, items, hashes)
+    for item in items:
+        _check_copy(item)
+    with _placing(staged, out):
+        digests = _output_hashes(staged)
+        _refuse_unless_identical(out, staged, digests)
+        ids = _commit(workspace, items, hashes, verified)
+        parents = [(ids[id(item)], role, attrs) for item, role, attrs in inputs]
+        if staged.is_dir():
+            register, kw = workspace.api.register_dir, {"hashes": digests}
+        else:
+            register, kw = workspace.api.register_file, {"sha256": digests[staged.name]}
+        return register(
+            staged, kind=kind, name=out.stem, config=config, parents=parents, parent_hashes=verified,
+            **kw, **_provenance(),
+        )  # fmt: skip
 
 
 def extract_cli(
@@ -190,25 +326,17 @@ def extract_cli(
 ) -> ArtifactRecord:
     out = Path(out)
     _refuse_existing(out)
-    m, s = locate(workspace, minuend), locate(workspace, subtrahend)
-    b = locate(workspace, base) if base is not None else None
-    with workspace.scratch() as tmp:
-        staged = vector_ops.extract(
-            m.path, s.path, tmp / out.name, include or None, exclude or None, base=b.path if b else None
-        )
-        _refuse_unless_identical(out, staged)
-        digests = _input_digests(staged)
-        parents = [
-            (commit_input(workspace, m, digests["minuend"]), "minuend"),
-            (commit_input(workspace, s, digests["subtrahend"]), "subtrahend"),
-        ]
-        if b is not None:
-            base_digest = Checkpoint(staged).metadata.get("capvector.base_sha256")
-            parents.append((commit_input(workspace, b, base_digest), "base"))
+    with workspace.api.store.staging() as stage:
+        refs = [(minuend, "checkpoint"), (subtrahend, "checkpoint"), (base, "checkpoint")]
+        m, s, b = _locate_all(workspace, refs, stage)
+        inputs = [(m, "minuend", {}), (s, "subtrahend", {})] + ([(b, "base", {})] if b else [])
+
+        def compute(dst: Path, hashes: dict[Path, str], copies: dict[Path, Path]) -> Path:
+            flt, base_path = (include or None, exclude or None), b.path if b else None
+            return vector_ops.extract(m.path, s.path, dst, *flt, base=base_path, hashes=hashes, copies=copies)
+
         config = {"formula": "minuend - subtrahend", "include": include, "exclude": exclude}
-        record = _register_output(workspace, staged, "vector", out.stem, config, parents)
-        _place(staged, out)
-    return record
+        return _produce(workspace, stage, out, inputs, compute, "vector", config)
 
 
 def finite_alphas(alphas: list[float]) -> list[float]:
@@ -231,43 +359,44 @@ def merge_cli(
     out = Path(out)
     alphas = finite_alphas([a for _, a in vectors])
     _refuse_existing(out)
-    b = locate(workspace, base)
-    located = [locate(workspace, v, "vector") for v, _ in vectors]
-    with workspace.scratch() as tmp:
-        staged = vector_ops.merge(
-            b.path,
-            [(v.path, a) for v, a in zip(located, alphas, strict=True)],
-            tmp / out.name,
-            include or None,
-            exclude or None,
-            force=force,
-        )
-        _refuse_unless_identical(out, staged)
-        digests = _input_digests(staged)
-        parents = [(commit_input(workspace, b, digests["base"]), "base")]
-        for i, (v, a) in enumerate(zip(located, alphas, strict=True)):
-            parents.append((commit_input(workspace, v, digests[f"vector_{i}"]), "vector", {"alpha": a}))
+    with workspace.api.store.staging() as stage:
+        refs = [(base, "checkpoint")] + [(v, "vector") for v, _ in vectors]
+        b, *located = _locate_all(workspace, refs, stage)
+        pairs = list(zip(located, alphas, strict=True))
+        inputs = [(b, "base", {})] + [(v, "vector", {"alpha": a}) for v, a in pairs]
+
+        def compute(dst: Path, hashes: dict[Path, str], copies: dict[Path, Path]) -> Path:
+            vecs, flt = [(v.path, a) for v, a in pairs], (include or None, exclude or None)
+            return vector_ops.merge(b.path, vecs, dst, *flt, force=force, hashes=hashes, copies=copies)
+
         config = {
             "formula": "base + sum_i alpha_i * vector_i",
             "alphas": alphas,
             "include": include,
             "exclude": exclude,
         }
-        record = _register_output(workspace, staged, "checkpoint", out.stem, config, parents)
-        _place(staged, out)
-    return record
+        return _produce(workspace, stage, out, inputs, compute, "checkpoint", config)
 
 
 def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: str | None) -> list[VectorStat]:
-    v = locate(workspace, vector, "vector")
-    b = locate(workspace, base) if base else None
-    r = locate(workspace, reference, "vector") if reference else None
-    rows = vector_ops.stats(v.path, base=b.path if b else None, reference_vector=r.path if r else None)
-    workspace.api.register_vector_stats(
-        commit_input(workspace, v),
-        stat_rows(rows),
-        base_id=commit_input(workspace, b) if b else None,
-        reference_id=commit_input(workspace, r) if r else None,
-        **provenance(),
-    )
+    from tasks.vectors import stat_rows  # imports Prefect: only this command needs it
+
+    with workspace.api.store.staging() as stage:
+        refs = [(vector, "vector"), (base or None, "checkpoint"), (reference or None, "vector")]
+        v, b, r = _locate_all(workspace, refs, stage, copy_now=True)  # stats does not hash what it reads
+        items = list({id(x): x for x in (v, b, r) if x is not None}.values())
+        with _blaming_damage(workspace, items):
+            rows = vector_ops.stats(v.path, b.path if b else None, r.path if r else None)
+        verified = _check_stored(workspace, items, {})  # hashed now
+        for item in items:
+            _check_copy(item)
+        ids = _commit(workspace, items, {}, verified)
+        workspace.api.register_vector_stats(
+            ids[id(v)],
+            stat_rows(rows),
+            base_id=ids[id(b)] if b else None,
+            reference_id=ids[id(r)] if r else None,
+            parent_hashes=verified,
+            **_provenance(),
+        )
     return rows
