@@ -41,10 +41,12 @@ class Workspace:
     def path(self, artifact_id: str) -> Path:
         """Local path of an artifact whose every byte was just checked against its id.
 
-        The one way steps and commands reach their inputs: bytes that changed while keeping size and
-        mtime (bit rot, `cp -a`, restores) raise CorruptArtifact naming the id, before anything is
-        computed from them or registered. Within one process an unchanged file is hashed once
-        (artifacts.store._hash_local); each new process re-hashes.
+        How steps reach their inputs: bytes that changed while keeping size and mtime (bit rot,
+        `cp -a`, restores) raise CorruptArtifact naming the id, before anything is computed from them
+        or registered. Within one process an unchanged file is hashed once
+        (artifacts.store._hash_local); each new process re-hashes. (The vector commands read each
+        input once instead, hashing as they read, and check those hashes before registering:
+        `ArtifactStore.stream_path`/`check_read`.)
         """
         return self.api.path(artifact_id, verify=True)
 
