@@ -106,11 +106,18 @@ def _compiled_model(xml_path: str) -> mujoco.MjModel:
 
 
 def _initialize_from_cache(self: Any) -> tuple[mujoco.MjModel, mujoco.MjData]:
-    """gymnasium's MujocoEnv._initialize_simulation, but copying a compiled model (15 ms) instead of
-    parsing the XML again (115 ms): evaluation builds one env per parallel episode."""
-    model = copy.copy(_compiled_model(self.fullpath))
+    """gymnasium's MujocoEnv._initialize_simulation, but copying a compiled model (6-15 ms) instead of
+    parsing the XML again (115 ms), or taking the `SharedModel` the env is built on (see `_build_env`)."""
+    share: SharedModel | None = self.__dict__.pop("_capvector_share", None)
+    if share is None:
+        model = copy.copy(_compiled_model(self.fullpath))
+    else:
+        model = share.model_for_new_env(self.fullpath)
     model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.width)
     model.vis.global_.offheight = max(model.vis.global_.offheight, self.height)
+    # On by default, this viewer flag makes every mj_step clear one byte per BVH node (134k here, mostly
+    # mesh nodes): a quarter of all instructions, and cache-cold in evaluation's batches. No physics.
+    model.vis.global_.bvactive = 0
     return model, mujoco.MjData(model)
 
 
@@ -120,16 +127,82 @@ def _env_class(task: str) -> type:
     return type(base.__name__, (base,), {"_initialize_simulation": _initialize_from_cache})
 
 
-def _build_env(task: str) -> Any:
+def _build_env(task: str, share: SharedModel | None = None) -> Any:
     """Meta-World's goal-observable recipe (env_dict._create_observable_goal_envs) with our seeding:
     the goal is part of the state, and each reset samples its goal from the env's seeded RNG."""
-    env = _env_class(task)()
+    cls = _env_class(task)
+    env = cls.__new__(cls)
+    if share is not None:
+        env._capvector_share = share  # read (and removed) by _initialize_from_cache inside __init__
+    env.__init__()
     env._partially_observable = False
     del env.sawyer_observation_space  # cached with the goal hidden; recomputed with goal bounds
     env._set_task_called = True
     env._freeze_rand_vec = False
     env.seeded_rand_vec = True
     return env
+
+
+# The model arrays Meta-World writes: body and site positions at reset, the mocap weld at construction.
+# tests/test_envs.py checks on every task that nothing else in the model changes.
+EPISODE_MODEL_FIELDS = ("body_pos", "site_pos", "eq_data")
+
+
+class SharedModel:
+    """One task's model and renderer shared by envs that are stepped in turn (evaluation's batches).
+
+    A model is 21 MB (meshes, textures); copying it for each of 64 parallel episodes cost more than
+    all the other evaluation overhead together. Meta-World writes episode values into the model
+    (`EPISODE_MODEL_FIELDS`), so each env keeps its own copy of those arrays and loads it before it
+    touches the simulator: every env computes exactly what it would with a model of its own.
+    """
+
+    def __init__(self, config: EnvConfig):
+        self.config = config
+        self.model: mujoco.MjModel | None = None
+        self._views: list[np.ndarray] = []
+        self._pristine: list[np.ndarray] = []
+        self._owner: MetaWorldEnv | None = None
+        self._renderer: FastRenderer | None = None
+
+    def new_env(self) -> MetaWorldEnv:
+        return MetaWorldEnv(self.config, share=self)
+
+    def model_for_new_env(self, xml_path: str) -> mujoco.MjModel:
+        """The model in the state a fresh copy would have (the current owner's arrays saved first)."""
+        if self.model is None:
+            self.model = copy.copy(_compiled_model(xml_path))
+            self._views = [getattr(self.model, name) for name in EPISODE_MODEL_FIELDS]
+            self._pristine = [view.copy() for view in self._views]
+        self._switch(None, self._pristine)
+        return self.model
+
+    def adopt(self, env: MetaWorldEnv) -> list[np.ndarray]:
+        """Make a just-built env the owner; returns its copy of the episode arrays."""
+        self._owner = env
+        return [view.copy() for view in self._views]
+
+    def activate(self, env: MetaWorldEnv) -> None:
+        if self._owner is not env:
+            self._switch(env, env._model_arrays)
+
+    def _switch(self, env: MetaWorldEnv | None, arrays: list[np.ndarray]) -> None:
+        if self._owner is not None:
+            for saved, view in zip(self._owner._model_arrays, self._views, strict=True):
+                saved[...] = view
+        for view, mine in zip(self._views, arrays, strict=True):
+            view[...] = mine
+        self._owner = env
+
+    def renderer(self) -> FastRenderer:
+        if self._renderer is None:
+            self._renderer = FastRenderer(self.model, self.config.camera, self.config.image_size)
+        return self._renderer
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
 
 
 class MetaWorldEnv:
@@ -139,13 +212,17 @@ class MetaWorldEnv:
     Observation dict: "state" f32 (39,) Meta-World's observation; "proprio" f32 (4,) hand xyz and
     gripper opening (state[0:4]); "privileged" f32 (9,) object xyz, goal xyz, gripper (tool centre
     point) xyz read from the simulator (unclipped, unlike the state vector); "image" uint8 (H, W, 3)
-    only in pixels mode.
+    only in pixels mode. Built by a `SharedModel`, it must be used through these methods only (`.env`
+    may hold another env's episode values in its model).
     """
 
-    def __init__(self, config: EnvConfig):
+    def __init__(self, config: EnvConfig, share: SharedModel | None = None):
         self.config = config
         self.instruction = INSTRUCTIONS[config.task]
-        self.env = _build_env(config.task)
+        self._share = share
+        self.env = _build_env(config.task, share)
+        if share is not None:
+            self._model_arrays = share.adopt(self)
         self._renderer: FastRenderer | None = None
         self.seed: int | None = None
         self.steps = 0
@@ -156,43 +233,65 @@ class MetaWorldEnv:
 
     def reset(self, seed: int | None = None) -> dict[str, np.ndarray]:
         """Start an episode whose goal variation is a pure function of `seed` (default: config.seed)."""
+        return self._observation(self.reset_state(seed))
+
+    def reset_state(self, seed: int | None = None) -> np.ndarray:
+        """`reset` returning Meta-World's float64 state, no observation dict: evaluation builds the
+        policy's observations only when it calls the policy (`batch_observations`)."""
         seed = self.config.seed if seed is None else seed
         if not isinstance(seed, int | np.integer) or seed < 0:
             raise ValueError(f"episode seed must be a non-negative integer, got {seed!r}")
+        self._activate()
         self.env.seed(int(seed))
         state, _ = self.env.reset()
         self.seed, self.steps = int(seed), 0
-        return self._observation(state)
+        return state
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, dict[str, Any]]:
         """Apply one action in [-1, 1]^4 (dx, dy, dz, gripper); success is Meta-World's info flag."""
+        action = np.asarray(action, dtype=np.float32)
+        if action.shape != (ACTION_DIM,) or not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be {ACTION_DIM} finite numbers, got {action!r}")
+        state, reward, success, info = self.step_state(action)
+        return self._observation(state), reward, success, info
+
+    def step_state(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
+        """`step` for an action already checked to be 4 finite float32 numbers (evaluation checks whole
+        chunks at once), returning Meta-World's float64 state instead of the observation dict."""
         if self.seed is None:
             raise RuntimeError("call reset(seed) before step()")
         if self.steps >= self.config.horizon:
             raise RuntimeError(f"episode already reached its horizon of {self.config.horizon} steps; reset()")
-        action = np.asarray(action, dtype=np.float32)
-        if action.shape != (ACTION_DIM,) or not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be {ACTION_DIM} finite numbers, got {action!r}")
+        self._activate()
         state, reward, _, _, info = self.env.step(np.clip(action, -1.0, 1.0))
         self.steps += 1
-        return self._observation(state), float(reward), bool(info["success"]), info
+        return state, float(reward), bool(info["success"]), info
 
     @property
     def goal(self) -> np.ndarray:
         """The goal position of the current episode (world xyz)."""
+        self._activate()
         return np.array(self.env._target_pos, dtype=np.float32)
 
     def privileged(self) -> np.ndarray:
         """Object xyz, goal xyz, gripper xyz from the simulator: training-only scene features."""
+        self._activate()
         env = self.env
         parts = [env._get_pos_objects()[:3], env._target_pos, env.tcp_center]
         return np.concatenate(parts).astype(np.float32)
 
     def render(self) -> np.ndarray:
         """Upright uint8 (S, S, 3) image from the configured camera (works in both modes, e.g. videos)."""
-        if self._renderer is None:
+        self._activate()
+        if self._renderer is None and self._share is not None:
+            self._renderer = self._share.renderer()
+        elif self._renderer is None:
             self._renderer = FastRenderer(self.env.model, self.config.camera, self.config.image_size)
         return self._renderer.render(self.env.data)
+
+    def _activate(self) -> None:
+        if self._share is not None:
+            self._share.activate(self)
 
     def _observation(self, state: np.ndarray) -> dict[str, np.ndarray]:
         state = state.astype(np.float32)
@@ -203,9 +302,9 @@ class MetaWorldEnv:
 
     def close(self) -> None:
         """Free the GL context first (avoids EGL errors at interpreter exit), then the simulator."""
-        if self._renderer is not None:
+        if self._renderer is not None and self._share is None:  # a shared one is the share's to close
             self._renderer.close()
-            self._renderer = None
+        self._renderer = None
         self.env.close()
 
     def __enter__(self) -> MetaWorldEnv:
@@ -227,6 +326,8 @@ def expert_action(task: str, state: np.ndarray) -> np.ndarray:
     return np.clip(expert_policy(task).get_action(state), -1.0, 1.0).astype(np.float32)
 
 
-def stack_observations(observations: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Batch per-env observation dicts into the (B, ...) arrays of the observation contract."""
-    return {key: np.stack([obs[key] for obs in observations]) for key in observations[0]}
+def batch_observations(states: list[np.ndarray], privileged: list[np.ndarray]) -> dict[str, np.ndarray]:
+    """The (B, ...) state, proprio and privileged arrays of the observation contract from Meta-World
+    states and `MetaWorldEnv.privileged()` vectors, straight into batch arrays (images: the caller's)."""
+    state = np.array(states, dtype=np.float32)
+    return {"state": state, "proprio": state[:, :PROPRIO_DIM].copy(), "privileged": np.array(privileged)}

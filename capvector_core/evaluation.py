@@ -30,8 +30,9 @@ from capvector_core.envs import (
     EnvConfig,
     MetaWorldEnv,
     ObsMode,
-    expert_action,
-    stack_observations,
+    SharedModel,
+    batch_observations,
+    expert_policy,
 )
 from capvector_core.metaworld_tasks import validate_task_names
 
@@ -53,7 +54,7 @@ class EvalConfig(BaseModel):
     camera: str = "corner2"
     image_size: int = Field(64, ge=16, le=256)
     execute_steps: int = Field(1, ge=1)
-    batch_size: int = Field(64, ge=1)  # environments stepped together (memory: one simulator each)
+    batch_size: int = Field(64, ge=1)  # envs stepped together (memory: one MjData each, one model per task)
     record_video: bool = False
 
     @field_validator("tasks")
@@ -142,16 +143,20 @@ def protocol_fingerprint(config: EvalConfig) -> str:
 
 
 def expert_action_fn(obs: dict[str, np.ndarray], task_names: list[str]) -> np.ndarray:
-    """Meta-World's scripted experts behind the policy interface: chunks of one action, (B, 1, 4)."""
-    actions = [expert_action(task, state) for task, state in zip(task_names, obs["state"], strict=True)]
-    return np.stack(actions)[:, None, :]
+    """Meta-World's scripted experts behind the policy interface: chunks of one action, (B, 1, 4),
+    clipped to the action box as `envs.expert_action` clips them (one clip for the whole batch)."""
+    states = obs["state"]
+    raw = [expert_policy(task).get_action(state) for task, state in zip(task_names, states, strict=True)]
+    return np.clip(np.array(raw), -1.0, 1.0).astype(np.float32)[:, None, :]
 
 
 class _EnvPool:
-    """Environments reused across batches: building one costs as much as ~200 simulation steps."""
+    """Environments reused across batches, built on one `SharedModel` per task: building one env costs
+    as much as ~200 simulation steps, and copying a model for each parallel episode even more."""
 
     def __init__(self, config: EvalConfig):
         self._config = config
+        self._shares: dict[str, SharedModel] = {}
         self._free: dict[str, list[MetaWorldEnv]] = {}
         self._all: list[MetaWorldEnv] = []
 
@@ -159,7 +164,9 @@ class _EnvPool:
         free = self._free.setdefault(task, [])
         if free:
             return free.pop()
-        env = MetaWorldEnv(self._config.env_config(task))
+        if task not in self._shares:
+            self._shares[task] = SharedModel(self._config.env_config(task))
+        env = self._shares[task].new_env()
         self._all.append(env)
         return env
 
@@ -170,6 +177,8 @@ class _EnvPool:
     def close(self) -> None:
         for env in self._all:
             env.close()
+        for share in self._shares.values():
+            share.close()
 
 
 def _checked_actions(actions: object, batch: int, execute_steps: int) -> np.ndarray:
@@ -189,39 +198,66 @@ def _checked_actions(actions: object, batch: int, execute_steps: int) -> np.ndar
 
 
 class _Rollout:
-    """One batch of episodes stepped in lockstep, with per-episode bookkeeping."""
+    """One batch of episodes stepped in lockstep, with per-episode bookkeeping.
 
-    def __init__(self, envs: list[MetaWorldEnv], seeds: list[int], record: list[bool]):
-        self.envs, self.seeds = envs, seeds
-        self.obs = [env.reset(seed) for env, seed in zip(envs, seeds, strict=True)]
+    Observations are taken only after the last step of each chunk, while that env holds the shared
+    model; images are rendered when the policy is called, and every step for recorded episodes (in
+    pixels mode the last frame is the image)."""
+
+    def __init__(
+        self,
+        envs: list[MetaWorldEnv],
+        seeds: list[int],
+        record: list[bool],
+        horizon: int,
+        on_done: Callable[[], None],
+    ):
+        self.envs, self.seeds, self.horizon, self.on_done = envs, seeds, horizon, on_done
+        self.tasks = [env.task for env in envs]
+        self.pixels = envs[0].config.obs_mode == "pixels"
+        self.states = []
+        self.privileged = []
+        for env, seed in zip(envs, seeds, strict=True):
+            self.states.append(env.reset_state(seed))
+            self.privileged.append(env.privileged())
         self.returns = [0.0] * len(envs)
         self.success = [False] * len(envs)
-        self.frames = {i: [self._frame(i)] for i, rec in enumerate(record) if rec}
-        self.done = [False] * len(envs)
+        self.frames = {i: [envs[i].render()] for i, rec in enumerate(record) if rec}
         self.policy_calls = 0
 
-    def _frame(self, i: int) -> np.ndarray:
-        return self.obs[i]["image"] if "image" in self.obs[i] else self.envs[i].render()
+    def _observations(self, rows: list[int]) -> dict[str, np.ndarray]:
+        obs = batch_observations([self.states[i] for i in rows], [self.privileged[i] for i in rows])
+        if self.pixels:
+            images = [self.frames[i][-1] if i in self.frames else self.envs[i].render() for i in rows]
+            obs["image"] = np.stack(images)
+        return obs
 
-    def run(self, action_fn: ActionFn, execute_steps: int, horizon: int, on_done: Callable[[], None]) -> None:
-        while rows := [i for i, done in enumerate(self.done) if not done]:
-            batch_obs = stack_observations([self.obs[i] for i in rows])
-            chunk = action_fn(batch_obs, [self.envs[i].task for i in rows])
+    def run(self, action_fn: ActionFn, execute_steps: int) -> None:
+        rows = list(range(len(self.envs)))
+        while rows:
+            chunk = action_fn(self._observations(rows), [self.tasks[i] for i in rows])
             self.policy_calls += 1
             chunk = _checked_actions(chunk, len(rows), execute_steps)
+            live = list(enumerate(rows))  # (row of the chunk, episode)
             for k in range(execute_steps):
-                for row, i in enumerate(rows):
-                    if not self.done[i]:
-                        self._step(i, chunk[row, k], horizon, on_done)
+                last = k == execute_steps - 1
+                live = [(row, i) for row, i in live if self._step(i, chunk[row, k], last)]
+            rows = [i for _, i in live]
 
-    def _step(self, i: int, action: np.ndarray, horizon: int, on_done: Callable[[], None]) -> None:
-        self.obs[i], reward, success, _ = self.envs[i].step(action)
+    def _step(self, i: int, action: np.ndarray, observe: bool) -> bool:
+        """Step episode `i`; False once it has ended (success or horizon)."""
+        env = self.envs[i]
+        self.states[i], reward, success, _ = env.step_state(action)
         self.returns[i] += reward
         if i in self.frames:
-            self.frames[i].append(self._frame(i))
-        if success or self.envs[i].steps >= horizon:
-            self.success[i], self.done[i] = success, True
-            on_done()
+            self.frames[i].append(env.render())
+        if success or env.steps >= self.horizon:
+            self.success[i] = success
+            self.on_done()
+            return False
+        if observe:
+            self.privileged[i] = env.privileged()
+        return True
 
     def records(self) -> list[EpisodeRecord]:
         return [
@@ -265,8 +301,8 @@ def evaluate(
             batch = episodes[first : first + config.batch_size]
             envs = [pool.take(task) for task, _ in batch]
             record = [config.record_video and seed == config.seed_base for _, seed in batch]
-            rollout = _Rollout(envs, [seed for _, seed in batch], record)
-            rollout.run(action_fn, config.execute_steps, config.horizon, on_done)
+            rollout = _Rollout(envs, [seed for _, seed in batch], record, config.horizon, on_done)
+            rollout.run(action_fn, config.execute_steps)
             pool.give_back(envs)
             records.extend(rollout.records())
             counters["policy_calls"] += rollout.policy_calls

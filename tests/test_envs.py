@@ -1,11 +1,19 @@
-"""Meta-World task tables, seeded goal variations, observation contract, upright rendering."""
+"""Meta-World task tables, seeded goal variations, observation contract, upright rendering, envs on
+a shared model."""
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from capvector_core.demos import EVAL_SEED_BASE, TRAIN_SEED_BASE
-from capvector_core.envs import EnvConfig, MetaWorldEnv, expert_action
+from capvector_core.envs import (
+    EPISODE_MODEL_FIELDS,
+    EnvConfig,
+    MetaWorldEnv,
+    SharedModel,
+    _compiled_model,
+    expert_action,
+)
 from capvector_core.metaworld_tasks import (
     DIFFICULTY_GROUPS,
     INSTRUCTIONS,
@@ -132,3 +140,100 @@ def _arm_mean_row(image: np.ndarray) -> float:
     rows = np.nonzero(red)[0]
     assert rows.size > 20, "the red Sawyer arm should be visible"
     return float(rows.mean())
+
+
+def _round_robin(envs: list[MetaWorldEnv], seeds: list[int], steps: int) -> list[list[tuple]]:
+    """Expert rollouts stepped in turn; per env, per step: (state, privileged, goal, reward, success)."""
+    trace = [[(obs["state"], obs["privileged"], env.goal, 0.0, False)] for env, obs in _resets(envs, seeds)]
+    for _ in range(steps):
+        for env, history in zip(envs, trace, strict=True):
+            obs, reward, success, _ = env.step(expert_action(env.task, history[-1][0]))
+            history.append((obs["state"], obs["privileged"], env.goal, reward, success))
+    return trace
+
+
+def _resets(envs, seeds):
+    return [(env, env.reset(seed)) for env, seed in zip(envs, seeds, strict=True)]
+
+
+@pytest.mark.parametrize("task", ["drawer-open-v3", "pick-place-v3"])
+def test_envs_on_a_shared_model_compute_what_envs_with_their_own_model_do(task):
+    """These tasks move bodies and sites in the model at reset; stepped in turn, each shared env must
+    still see its own (a wrong swap changes their trajectories)."""
+    seeds = [EVAL_SEED_BASE + i for i in range(3)]
+    own = [MetaWorldEnv(EnvConfig(task=task)) for _ in seeds]
+    expected = [_round_robin([env], [seed], 30)[0] for env, seed in zip(own, seeds, strict=True)]
+    share = SharedModel(EnvConfig(task=task))
+    envs = [share.new_env(), share.new_env()]
+    envs[0].reset(seeds[0])
+    envs.append(share.new_env())  # built while another env holds episode values in the model
+    assert len({id(env.env.model) for env in envs}) == 1
+    shared = _round_robin(envs, seeds, 30)
+    for got, want in zip(shared, expected, strict=True):
+        for got_step, want_step in zip(got, want, strict=True):
+            for a, b in zip(got_step, want_step, strict=True):
+                np.testing.assert_array_equal(a, b)
+    for env in own + envs:
+        env.close()
+    share.close()
+
+
+def test_bvh_viewer_flag_is_off_and_changes_no_trajectory():
+    """Envs skip MuJoCo's per-step clearing of the viewer's BVH flags: same physics as with it on."""
+    with (
+        MetaWorldEnv(EnvConfig(task="pick-place-v3")) as off,
+        MetaWorldEnv(EnvConfig(task="pick-place-v3")) as on,
+    ):
+        assert off.env.model.vis.global_.bvactive == 0
+        on.env.model.vis.global_.bvactive = 1
+        traces = [_round_robin([env], [EVAL_SEED_BASE], 60)[0] for env in (off, on)]
+        assert on.env.data.bvh_active.any() and not off.env.data.bvh_active.any()
+    for got_step, want_step in zip(*traces, strict=True):
+        for a, b in zip(got_step, want_step, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_shared_model_renders_each_env_own_scene():
+    config = EnvConfig(task="drawer-close-v3", obs_mode="pixels", image_size=32)
+    share = SharedModel(config)
+    shared = [share.new_env(), share.new_env()]
+    own = [MetaWorldEnv(config), MetaWorldEnv(config)]
+    images = []
+    for envs in (shared, own):
+        first = [env.reset(seed)["image"] for env, seed in zip(envs, [1, 2], strict=True)]
+        envs[1].step(np.array([0.0, 0.0, 1.0, 0.0]))
+        images.append((first, envs[0].render(), envs[1].render()))  # env 0 renders while env 1 held the model
+    (first, zero, one), (own_first, own_zero, own_one) = images
+    np.testing.assert_array_equal(zero, own_zero)
+    np.testing.assert_array_equal(one, own_one)
+    assert all(np.array_equal(a, b) for a, b in zip(first, own_first, strict=True))
+    assert not np.array_equal(own_first[0], own_first[1])  # two goal variations look different
+    for env in shared + own:
+        env.close()
+    share.close()
+
+
+def _model_arrays(model) -> dict[str, np.ndarray]:
+    names = [name for name in dir(model) if not name.startswith("_")]
+    return {
+        name: getattr(model, name).copy() for name in names if isinstance(getattr(model, name), np.ndarray)
+    }
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    return np.array_equal(a, b, equal_nan=a.dtype.kind == "f")  # some compiled arrays hold NaN
+
+
+def test_meta_world_writes_only_the_episode_fields_into_its_model():
+    """`SharedModel` swaps only EPISODE_MODEL_FIELDS between envs: on every task, construction,
+    resets and steps must leave the rest of the model as compiled."""
+    for task in TASK_NAMES:
+        with MetaWorldEnv(EnvConfig(task=task)) as env:
+            for seed in (EVAL_SEED_BASE, EVAL_SEED_BASE + 1):
+                obs = env.reset(seed)
+                for _ in range(5):
+                    obs, *_ = env.step(expert_action(task, obs["state"]))
+            compiled = _model_arrays(_compiled_model(env.env.fullpath))
+            now = _model_arrays(env.env.model)
+        changed = {name for name in compiled if not _same(compiled[name], now[name])}
+        assert changed <= set(EPISODE_MODEL_FIELDS), (task, changed - set(EPISODE_MODEL_FIELDS))

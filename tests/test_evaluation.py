@@ -1,11 +1,14 @@
-"""Batched evaluation: expert success, records, protocol fingerprint, bad policy outputs, videos."""
+"""Batched evaluation: expert success, records equal to a one-env-at-a-time loop, protocol
+fingerprint, bad policy outputs, videos."""
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
+from capvector_core.envs import MetaWorldEnv
 from capvector_core.evaluation import (
+    EpisodeRecord,
     EvalConfig,
     EvalResult,
     evaluate,
@@ -41,6 +44,57 @@ def test_expert_succeeds_and_records_are_complete(expert_result):
     # batches of at most 4 envs; one policy call per step for the still-running ones
     assert max(calls) == 4 and result.policy_calls == len(calls)
     assert set(result.versions) == {"metaworld", "mujoco", "numpy", "torch"}
+
+
+def straightforward_records(action_fn, config: EvalConfig) -> list[EpisodeRecord]:
+    """The obvious loop: one env of its own per task, one episode at a time, public API only."""
+    records = []
+    for task in config.tasks:
+        with MetaWorldEnv(config.env_config(task)) as env:
+            for seed in config.seeds:
+                obs, episode_return, success = env.reset(seed), 0.0, False
+                while not success and env.steps < config.horizon:
+                    chunk = action_fn({key: value[None] for key, value in obs.items()}, [task])
+                    for action in chunk[0, : config.execute_steps]:
+                        obs, reward, success, _ = env.step(action)
+                        episode_return += reward
+                        if success or env.steps >= config.horizon:
+                            break
+                records.append(
+                    EpisodeRecord(
+                        task=task, seed=seed, success=success, steps=env.steps, episode_return=episode_return
+                    )
+                )
+    return records
+
+
+def jittered_chunks(obs, task_names):
+    """Chunks of 3 expert-based actions that differ within the chunk (per-row, batch-independent)."""
+    actions = np.repeat(expert_action_fn(obs, task_names), 3, axis=1)
+    actions[:, 1:, :3] *= np.float32(0.9)
+    return actions
+
+
+@pytest.mark.parametrize(
+    ("action_fn", "execute_steps", "batch_size"),
+    [(expert_action_fn, 1, 5), (jittered_chunks, 3, 4)],
+    ids=["expert", "chunks"],
+)
+def test_batched_evaluation_gives_the_records_of_a_one_env_at_a_time_loop(
+    action_fn, execute_steps, batch_size
+):
+    """Lockstep batches on shared models (drawer and pick-place write episode values into theirs),
+    envs reused across batches, observations built only for policy calls: none may change a record."""
+    config = EvalConfig(
+        tasks=["drawer-open-v3", "pick-place-v3", "reach-v3"],
+        episodes_per_task=3,
+        horizon=120,
+        execute_steps=execute_steps,
+        batch_size=batch_size,
+    )
+    result = evaluate(action_fn, config)
+    assert result.episodes == straightforward_records(action_fn, config)
+    assert result.env_steps == sum(r.steps for r in result.episodes)
 
 
 def test_result_json_roundtrip(expert_result):
