@@ -9,8 +9,8 @@ from pathlib import Path
 from conftest import run_cli
 
 from tasks.caching import cached_step, content_key, lookup
-from tasks.step_code import module_closure, step_code
 from tasks.prefect_task import pipeline_task
+from tasks.step_code import module_closure, step_code
 from tasks.workspace import Workspace
 
 
