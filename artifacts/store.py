@@ -162,7 +162,7 @@ def copy_file(src: str | os.PathLike[str] | BinaryIO, dst: str | os.PathLike[str
 def copy_in(src: str | os.PathLike[str], dst: str | os.PathLike[str], skip: Iterable[str] = ()) -> None:
     """Copy a local file or directory tree (every file, as `put_dir` stores it; members in `skip` are
     left for the caller to write) to a new path, by `copy_file`, and start writing the copies back to
-    disk. Into `ArtifactStore.staging()`: a copy cannot change under its reader, as the source could."""
+    disk. Meant for `ArtifactStore.staging()`: a private copy cannot change under its reader."""
     src, dst, skip = os.path.abspath(os.fspath(src)), Path(dst), set(skip)
     if not os.path.isdir(src):
         copy_file(src, dst)

@@ -15,11 +15,12 @@ under /usr/bin/time (wall, CPU, peak RSS):
   check patched out (`UNVERIFIED`: a benchmark-only patch, no switch of the CLI);
 - the library calls alone (`vector_ops.extract`/`merge`, no store) and their I/O floor (read both
   inputs, write one output: no arithmetic, no hashing).
-Each input was read by a command before, so it is in page cache as far as memory allows. Ratios
+Each command's inputs are read (untimed) just before it, so that all find them in page cache. Ratios
 compare runs of one repetition (same load); the headline is their median. The machine has 2 cores
 shared with other jobs: the load average is recorded with every sample.
 
 Usage: .venv/bin/python benchmarks/bench_vectors.py [--reps 3] [--cases f32_256m,bf16_2g] [--work DIR]
+       [--before REV] [--keep]   (--work outside benchmarks/_work: other benchmarks wipe it)
 """
 
 from __future__ import annotations
@@ -130,7 +131,7 @@ def ensure_mergekit(venv: Path) -> str | None:
     return None
 
 
-def timed(cmd: list[str], env: dict[str, str] | None = None) -> dict:
+def timed(cmd: list[str], env: dict[str, str] | None = None, cwd: Path = ROOT) -> dict:
     """Wall and CPU seconds and peak RSS (MiB) of `cmd` in a fresh process, with the load average."""
     with tempfile.NamedTemporaryFile("r", suffix=".time") as stats:
         t = time.perf_counter()
@@ -138,7 +139,7 @@ def timed(cmd: list[str], env: dict[str, str] | None = None) -> dict:
             ["/usr/bin/time", "-f", "%M %U %S", "-o", stats.name, *cmd],
             capture_output=True,
             text=True,
-            cwd=ROOT,
+            cwd=cwd,
             env={**os.environ, **(env or {})},
         )
         wall = time.perf_counter() - t
@@ -242,7 +243,28 @@ def artifact_ids(home: Path) -> dict[str, str]:
     return {r.name: r.id for r in store.iter_records()}
 
 
-def run_case(key: str, work: Path, venv: Path, reps: int, mk_error: str | None) -> dict:
+def warm(*paths: Path | str) -> None:
+    """Read files once, untimed: every command then finds its inputs in page cache alike."""
+    for path in map(Path, paths):
+        for f in [path] if path.is_file() else sorted(x for x in path.rglob("*") if x.is_file()):
+            with open(f, "rb", buffering=0) as fh:
+                while fh.read(8 << 20):
+                    pass
+
+
+def checkout(rev: str, work: Path) -> Path:
+    """The source tree as of `rev` (git archive: the repository is not touched), for `--before`."""
+    dst = work / f"before-{rev}"
+    if not dst.exists():
+        dst.mkdir()
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], check=True, capture_output=True)
+        subprocess.run(["tar", "-x", "-C", str(dst)], input=archive.stdout, check=True)
+    return dst
+
+
+def run_case(
+    key: str, work: Path, venv: Path, reps: int, mk_error: str | None, before: Path | None = None
+) -> dict:
     case = CASES[key]
     data = work / key
     data.mkdir(parents=True, exist_ok=True)
@@ -257,8 +279,11 @@ def run_case(key: str, work: Path, venv: Path, reps: int, mk_error: str | None) 
     )
     samples: dict[str, list[dict]] = {}
 
-    def sample(name: str, cmd: list[str], env: dict[str, str] | None = None) -> None:
-        samples.setdefault(name, []).append(timed(cmd, env))
+    def sample(
+        name: str, cmd: list[str], env: dict[str, str] | None = None, cwd: Path = ROOT, inputs=()
+    ) -> None:
+        warm(*inputs)
+        samples.setdefault(name, []).append(timed(cmd, env, cwd))
         print(f"{key} {name}: {samples[name][-1]}", flush=True)
 
     for rep in range(reps):
@@ -268,27 +293,53 @@ def run_case(key: str, work: Path, venv: Path, reps: int, mk_error: str | None) 
             for p in (gamma, meta):
                 shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
             a, f, p = (str(paths[n]) for n in ("ao", "ft", "pt"))
-            sample("ours_extract", [*CAPVECTOR, "vector", "extract", a, f, "-o", str(gamma)], env)
-            sample("ours_merge", [*CAPVECTOR, "vector", "merge", p, "--vector", str(gamma),
-                                  "--alpha", str(ALPHA), "-o", str(meta)], env)  # fmt: skip
+            sample(
+                "ours_extract", [*CAPVECTOR, "vector", "extract", a, f, "-o", str(gamma)], env, inputs=(a, f)
+            )
+            merge = [
+                *CAPVECTOR,
+                "vector",
+                "merge",
+                p,
+                "--vector",
+                str(gamma),
+                "--alpha",
+                str(ALPHA),
+                "-o",
+                str(meta),
+            ]
+            sample("ours_merge", merge, env, inputs=(p, gamma))
             if mk_error is None:
                 shutil.rmtree(mk_out, ignore_errors=True)
-                sample("mergekit", mergekit_cmd(work, venv, files, case["dtype"], mk_out))
+                mk_cmd = mergekit_cmd(work, venv, files, case["dtype"], mk_out)
+                sample("mergekit", mk_cmd, inputs=files.values())
+            if before is not None:  # the same two commands as of an older commit, in a home of their own
+                old = {"CAPVECTOR_HOME": str(Path(tmp) / "before-home"), "PREFECT_HOME": env["PREFECT_HOME"]}
+                g_old, m_old = (Path(tmp) / f"before-{n}{ext}" for n in ("gamma", "meta"))
+                cli = [PY, "-m", "flows.cli", "vector"]
+                sample("before_extract", [*cli, "extract", a, f, "-o", str(g_old)], old, before, (a, f))
+                merge = [*cli, "merge", p, "--vector", str(g_old), "--alpha", str(ALPHA), "-o", str(m_old)]
+                sample("before_merge", merge, old, before, (p, g_old))
             ids = artifact_ids(home)
             (a_id, f_id, p_id), g_id = (ids[Path(x).name] for x in (a, f, p)), ids[gamma.stem]
+            obj = {i: home / "store" / "objects" / i[:2] / i for i in (a_id, f_id, p_id, g_id)}
             variants = [("verified", lambda *x: [*CAPVECTOR, *x]), ("unverified", unverified)]
             for variant, cli in variants if rep % 2 == 0 else variants[::-1]:  # neither always goes first
                 g_out, m_out = (Path(tmp) / f"{variant}-{n}{ext}" for n in ("gamma", "meta"))
-                sample(f"ids_extract_{variant}", cli("vector", "extract", a_id, f_id, "-o", str(g_out)), env)
+                extract = ("vector", "extract", a_id, f_id, "-o", str(g_out))
+                sample(f"ids_extract_{variant}", cli(*extract), env, inputs=(obj[a_id], obj[f_id]))
                 merge = ("vector", "merge", p_id, "--vector", g_id, "--alpha", str(ALPHA), "-o", str(m_out))
-                sample(f"ids_merge_{variant}", cli(*merge), env)
-        sample("lib_extract", py(LIB_EXTRACT, a=str(paths["ao"]), b=str(paths["ft"]), out=str(lib_out)))
+                sample(f"ids_merge_{variant}", cli(*merge), env, inputs=(obj[p_id], obj[g_id]))
+        lib_in = {"a": str(paths["ao"]), "b": str(paths["ft"])}
+        sample("lib_extract", py(LIB_EXTRACT, **lib_in, out=str(lib_out)), inputs=lib_in.values())
+        lib_in = {"a": str(paths["pt"]), "b": str(lib_out)}
         sample(
-            "lib_merge",
-            py(LIB_MERGE, a=str(paths["pt"]), b=str(lib_out), alpha=ALPHA, out=str(lib_out) + "m"),
+            "lib_merge", py(LIB_MERGE, **lib_in, alpha=ALPHA, out=str(lib_out) + "m"), inputs=lib_in.values()
         )
-        sample("floor_extract", py(FLOOR, a=str(paths["ao"]), b=str(paths["ft"]), out=str(floor_out)))
-        sample("floor_merge", py(FLOOR, a=str(paths["pt"]), b=str(lib_out), out=str(floor_out)))
+        lib_in = {"a": str(paths["ao"]), "b": str(paths["ft"])}
+        sample("floor_extract", py(FLOOR, **lib_in, out=str(floor_out)), inputs=lib_in.values())
+        lib_in = {"a": str(paths["pt"]), "b": str(lib_out)}
+        sample("floor_merge", py(FLOOR, **lib_in, out=str(floor_out)), inputs=lib_in.values())
     return summarize(key, case, ckpt, build_s, reps, samples, meta, mk_out, mk_error)
 
 
@@ -368,6 +419,15 @@ def summarize(key, case, ckpt, build_s, reps, samples, meta, mk_out, mk_error) -
             "at_most_1x_mergekit": statistics.median(ratios) <= 1.0,
             "rss_below_mergekit": ours_rss < best["mergekit"]["peak_rss_mib"],
         }
+        if "before_extract" in samples:
+            old = per_rep("before_extract", "before_merge")
+            result["before"] = {
+                "wall_s": {"per_rep": old, "median": statistics.median(old)},
+                "ratio_to_mergekit_median": statistics.median(o / m for o, m in zip(old, mk, strict=True)),
+                "peak_rss_mib": max(
+                    best["before_extract"]["peak_rss_mib"], best["before_merge"]["peak_rss_mib"]
+                ),
+            }
     return result
 
 
@@ -377,6 +437,7 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     ap.add_argument("--keep", action="store_true", help="keep the synthetic checkpoints")
     ap.add_argument("--work", type=Path, default=WORK, help="scratch directory (checkpoints, mergekit venv)")
+    ap.add_argument("--before", help="also time the two commands as of this git revision, in the same run")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     venv = args.work / "mergekit-venv"
@@ -390,8 +451,10 @@ def main() -> None:
         },
         "cases": {},
     }
+    before = checkout(args.before, args.work) if args.before else None
+    result["before"] = args.before
     for key in args.cases.split(","):
-        result["cases"][key] = run_case(key, args.work, venv, args.reps, mk_error)
+        result["cases"][key] = run_case(key, args.work, venv, args.reps, mk_error, before)
         if not args.keep:
             shutil.rmtree(args.work / key, ignore_errors=True)
     result["machine"]["load_at_end"] = os.getloadavg()
@@ -407,8 +470,9 @@ def write_results(r: dict) -> None:
         "",
         "`capvector vector extract` + `capvector vector merge` as a user runs them (each a fresh process, "
         "a fresh home: inputs imported into the store, outputs registered and placed at `-o`) against "
-        "mergekit's `task_arithmetic` (one process, one pass) on the same files, interleaved; inputs in "
-        "page cache. Ratios pair the runs of one repetition; the headline is their median. "
+        "mergekit's `task_arithmetic` (one process, one pass) on the same files, interleaved; each "
+        "command's inputs read into page cache (untimed) just before it. Ratios pair the runs of one "
+        "repetition; the headline is their median. "
         f"{m['cpus']} cores shared with other jobs: load average {m['load_at_start'][0]:.1f} at the "
         f"start, {m['load_at_end'][0]:.1f} at the end (per case below).",
     ]
@@ -444,6 +508,13 @@ def write_results(r: dict) -> None:
                 "sampled tensors; our two commands round γ to the checkpoint's dtype before merging, "
                 "mergekit does not).",
             ]
+            if "before" in c:
+                b = c["before"]
+                lines.append(
+                    f"- before (the same commands as of `{r['before']}`, in this run): "
+                    f"{b['wall_s']['median']:.2f} s, {b['ratio_to_mergekit_median']:.2f}× mergekit, "
+                    f"peak RSS {b['peak_rss_mib']:.0f} MiB."
+                )
         runs = zip(v["verified_s"], v["unverified_s"], strict=True)
         pairs = ", ".join(f"{a:.2f}/{b:.2f} s" for a, b in runs)
         lines += [

@@ -360,16 +360,13 @@ class Checkpoint:
     def largest_tensor_nbytes(self) -> int:
         return max((s.nbytes for s in self.specs.values()), default=0)
 
-    def read_bytes(
-        self, name: str, start: int = 0, stop: int | None = None, out: np.ndarray | None = None
-    ) -> np.ndarray:
-        """Read bytes [start, stop) of one tensor into a fresh, owned uint8 array (no memory map stays),
-        or into the front of `out` (a uint8 array the caller reuses)."""
+    def read_bytes(self, name: str, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Read bytes [start, stop) of one tensor into a fresh, owned uint8 array (no memory map stays)."""
         spec = self.specs[name]
         stop = spec.nbytes if stop is None else stop
         if not 0 <= start <= stop <= spec.nbytes:
             raise ValueError(f"bytes [{start}, {stop}) are not inside tensor {name!r} ({spec.nbytes} bytes)")
-        buf = np.empty(stop - start, dtype=np.uint8) if out is None else out[: stop - start]
+        buf = np.empty(stop - start, dtype=np.uint8)
         with open(spec.file, "rb", buffering=0) as f:
             f.seek(spec.begin + start)
             view = memoryview(buf)

@@ -29,6 +29,7 @@ matches no tensor at all, or a selection that is empty, is an error (it is almos
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -112,10 +113,10 @@ class _HashingReader:
     Tensors read in storage order feed the running sha256 of their file; anything out of order (or not
     read at all) is hashed from disk at the end, so the digest is always the file's true sha256. A file
     replaced or written to while it is read (its inode, size, mtime or ctime moved) is refused: its
-    digest would name bytes other than those computed from. With `copies` (file -> new path), the
-    helper thread also writes each file's bytes there as they are hashed: a copy of exactly the hashed
-    bytes, made while the computation runs rather than before it, and without a second read (a file is
-    copied by the first reader that claims it: its entry is taken out of `copies`).
+    digest would name bytes other than those computed from. With `copies` (file -> new path), a file is
+    read through a `_Copy` at that path: a private copy of exactly the bytes hashed and computed from,
+    made while the computation runs rather than before it (a file is copied by the first reader that
+    claims it: its entry is taken out of `copies`).
     """
 
     def __init__(self, ckpt: Checkpoint, pool: ThreadPoolExecutor, copies: Mapping[Path, Path] | None = None):
@@ -123,39 +124,37 @@ class _HashingReader:
         self.pool = pool
         self.state: dict[Path, list] = {}
         self.stats: dict[Path, tuple[int, ...]] = {}
-        self.sinks: dict[Path, _Sink] = {}
+        self.copies: dict[Path, _Copy] = {}
         self.pending: Future | None = None
         self.pending_turn = 0
         self.ring: list[np.ndarray | None] = [None, None]  # read buffers, reused (see `_buffer`)
         self.turn = 0
         self.done: dict[Path, str] | None = None
         for f in ckpt.files:
-            h = hashlib.sha256()
-            with open(f, "rb") as fh:
-                self.stats[f] = _identity(os.fstat(fh.fileno()))
-                head = fh.read(8)
-                head += fh.read(int.from_bytes(head, "little"))
+            self.stats[f] = _identity(f.stat())
             if copies and f in copies:
-                self.sinks[f] = _Sink(copies.pop(f))
-            _take(h, self.sinks.get(f), head, 0)
-            self.state[f] = [h, len(head)]
+                self.copies[f] = _Copy(f, copies.pop(f))
+            h, first = hashlib.sha256(), _read(f, self.copies.get(f), 0, np.empty(8, np.uint8))
+            h.update(memoryview(first))
+            end = 8 + int.from_bytes(first.tobytes(), "little")  # the header: 8 bytes, then its JSON
+            _hash_range(h, f, 8, end, self.copies.get(f))
+            self.state[f] = [h, end]
 
     def chunks(self, name: str, bounds: list[tuple[int, int]]) -> Iterator[np.ndarray]:
         """Flat pieces of one tensor (its `STORAGE` dtype), read (and hashed) in the byte ranges `bounds`."""
         spec = self.ckpt.specs[name]
-        sink = self.sinks.get(spec.file)
+        copy = self.copies.get(spec.file)
         for b, e in bounds:
-            raw = self.ckpt.read_bytes(name, b, e, out=self._buffer(e - b))
+            raw = _read(spec.file, copy, spec.begin + b, self._buffer(e - b)[: e - b])
             st = self.state[spec.file]
             if st[1] is not None and st[1] <= spec.begin + b:
                 self._wait()
                 if st[1] < spec.begin + b:  # bytes skipped (tensors not needed, padding): hash from disk
-                    _hash_range(st[0], spec.file, st[1], spec.begin + b, sink)
-                task = self.pool.submit(_take, st[0], sink, raw, spec.begin + b)
-                self.pending, self.pending_turn = task, self.turn
+                    _hash_range(st[0], spec.file, st[1], spec.begin + b, copy)
+                self.pending, self.pending_turn = self.pool.submit(st[0].update, memoryview(raw)), self.turn
                 st[1] = spec.begin + e
             else:
-                st[1] = None  # read out of order: hash (and copy) the whole file from disk at the end
+                st[1] = None  # read out of order: hash the whole file (its copy) from disk at the end
             yield raw.view(STORAGE[spec.dtype])
 
     def _buffer(self, n: int) -> np.ndarray:
@@ -185,7 +184,7 @@ class _HashingReader:
         for f, (h, pos) in self.state.items():
             if pos is None:
                 h, pos = hashlib.sha256(), 0
-            _hash_range(h, f, pos, self.stats[f][2], self.sinks.get(f))
+            _hash_range(h, f, pos, self.stats[f][2], self.copies.get(f))
             done[f] = h.hexdigest()
             if _identity(f.stat()) != self.stats[f]:
                 raise VectorOpError(f"{f} changed while it was being read; run the command again")
@@ -194,64 +193,117 @@ class _HashingReader:
         return done
 
     def copied(self) -> dict[Path, str]:
-        """copy path -> sha256 of the bytes written there (those hashed)."""
+        """copy path -> sha256 of its bytes (those hashed and computed from)."""
         digests = self.file_digests()
-        return {sink.path: digests[f] for f, sink in self.sinks.items()}
+        return {copy.path: digests[f] for f, copy in self.copies.items()}
 
     def close(self) -> None:
         self._wait()
-        for sink in self.sinks.values():
-            sink.close()
+        for copy in self.copies.values():
+            copy.close()
 
     def sha256(self) -> str:
         return self.ckpt.sha256(self.file_digests())
 
 
-class _Sink:
-    """A new file that bytes are written into at their offsets, queued for writeback as it grows (the
-    fsync before it is committed then finds little left to write)."""
+class _Copy:
+    """A private copy of a file, filled range by range just before each range is read, then read from
+    there: what is hashed and computed from is exactly what is stored, whatever the source does
+    meanwhile. The kernel copies (copy_file_range: page cache to page cache, half the cost of a write
+    from user space); across filesystems, where it cannot, the bytes are read from the source and
+    written to the copy. Writeback is started as the copy grows (the fsync before its commit then finds
+    little left to do)."""
 
-    def __init__(self, path: Path):
+    def __init__(self, src: Path, path: Path):
         path.parent.mkdir(parents=True, exist_ok=True)
         self.path = path
-        self.fd: int | None = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        self.queued = 0
+        self.src = os.open(src, os.O_RDONLY)
+        self.fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
+        self.kernel = True
+        self.filled: list[tuple[int, int]] = []  # copied ranges, sorted and disjoint
+        self.unqueued = 0
 
-    def write(self, data, offset: int) -> None:
-        view = memoryview(data).cast("B")
-        while view:
-            n = os.pwrite(self.fd, view, offset)
-            view, offset = view[n:], offset + n
-        if offset - self.queued >= WRITEBACK_BYTES:
-            start_writeback(self.fd, self.queued, offset)
-            self.queued = offset
+    def read(self, begin: int, out: np.ndarray) -> np.ndarray:
+        """Bytes [begin, begin + out.size) of the copy into `out`, copied from the source if new."""
+        for start, end in self._missing(begin, begin + out.size):
+            b = start
+            if self.kernel:
+                try:
+                    while b < end:
+                        n = os.copy_file_range(self.src, self.fd, end - b, b, b)
+                        if not n:
+                            raise CheckpointError(f"{self.path.name}: the source ended at byte {b}")
+                        b += n
+                except OSError:
+                    self.kernel = False  # another filesystem, an old kernel: through user space
+            if b < end:
+                view = memoryview(_pread(self.src, out[b - begin : end - begin], b))
+                while view:
+                    n = os.pwrite(self.fd, view, b)
+                    view, b = view[n:], b + n
+            self._mark(start, end)
+        return _pread(self.fd, out, begin)
+
+    def _missing(self, begin: int, end: int) -> list[tuple[int, int]]:
+        gaps = []
+        for b, e in self.filled:
+            if b > begin:
+                gaps.append((begin, min(b, end)))
+            begin = max(begin, e)
+            if begin >= end:
+                break
+        if begin < end:
+            gaps.append((begin, end))
+        return [(b, e) for b, e in gaps if b < e]
+
+    def _mark(self, begin: int, end: int) -> None:
+        spans = sorted([*self.filled, (begin, end)])
+        self.filled = [spans[0]]
+        for b, e in spans[1:]:
+            if b <= self.filled[-1][1]:
+                self.filled[-1] = (self.filled[-1][0], max(e, self.filled[-1][1]))
+            else:
+                self.filled.append((b, e))
+        self.unqueued += end - begin
+        if self.unqueued >= WRITEBACK_BYTES:
+            start_writeback(self.fd, 0, 0)  # all of it so far
+            self.unqueued = 0
 
     def close(self) -> None:
-        if self.fd is not None:
-            os.close(self.fd)
-            self.fd = None
+        for fd in (self.src, self.fd):
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
 
-def _take(h, sink: _Sink | None, data, offset: int) -> None:
-    """Hash bytes read at `offset` of a file, and copy them to its sink."""
-    h.update(data)
-    if sink is not None:
-        sink.write(data, offset)
+def _pread(fd: int, out: np.ndarray, offset: int) -> np.ndarray:
+    view, got = memoryview(out).cast("B"), 0
+    while got < len(view):
+        n = os.preadv(fd, [view[got:]], offset + got)
+        if not n:
+            raise CheckpointError(f"a file ended at byte {offset + got}, before the data it must hold")
+        got += n
+    return out
+
+
+def _read(path: Path, copy: _Copy | None, offset: int, out: np.ndarray) -> np.ndarray:
+    """Bytes at `offset` of a file (through its copy, if it has one) into `out`."""
+    if copy is not None:
+        return copy.read(offset, out)
+    with open(path, "rb", buffering=0) as f:
+        return _pread(f.fileno(), out, offset)
 
 
 def _identity(st: os.stat_result) -> tuple[int, ...]:
     return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
 
 
-def _hash_range(h, path: Path, begin: int, end: int, sink: _Sink | None = None, chunk: int = 8 << 20) -> None:
-    with open(path, "rb") as f:
-        f.seek(begin)
-        while begin < end:
-            data = f.read(min(chunk, end - begin))
-            if not data:
-                break
-            _take(h, sink, data, begin)
-            begin += len(data)
+def _hash_range(h, path: Path, begin: int, end: int, copy: _Copy | None = None, chunk: int = 8 << 20) -> None:
+    """Hash bytes [begin, end) of a file (through its copy, if it has one)."""
+    buf = np.empty(min(chunk, max(end - begin, 0)), np.uint8)
+    while begin < end:
+        n = min(chunk, end - begin)
+        h.update(memoryview(_read(path, copy, begin, buf[:n])))
+        begin += n
 
 
 class _Scratch:
@@ -406,15 +458,15 @@ def _resolve_hash(
     ckpt = Checkpoint(s)
     digests = {}
     for f in ckpt.files:
-        h, sink = hashlib.sha256(), _Sink(copies.pop(f)) if copies and f in copies else None
+        h, copy = hashlib.sha256(), _Copy(f, copies.pop(f)) if copies and f in copies else None
         try:
-            _hash_range(h, f, 0, f.stat().st_size, sink)
+            _hash_range(h, f, 0, f.stat().st_size, copy)
         finally:
-            if sink is not None:
-                sink.close()
+            if copy is not None:
+                copy.close()
         digests[f] = h.hexdigest()
         if hashes is not None:
-            _record(hashes, {f: digests[f]} | ({sink.path: digests[f]} if sink else {}))
+            _record(hashes, {f: digests[f]} | ({copy.path: digests[f]} if copy else {}))
     return ckpt.sha256(digests)
 
 

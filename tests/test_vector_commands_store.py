@@ -84,31 +84,20 @@ def test_an_outside_input_is_read_and_hashed_once(user, monkeypatch):
                          (store_mod, "copy_and_hash"), (safetensors_io, "file_sha256"),
                          (vector_commands, "hash_file")]:  # fmt: skip
         spy(module, name)
-    from_disk: dict[str, int] = {}  # bytes the streaming reader hashed from disk rather than as read
-    real_range = vector_ops._hash_range
-
-    def counting_range(h, path, begin, end, *args):
-        from_disk[path.name] = from_disk.get(path.name, 0) + end - begin
-        return real_range(h, path, begin, end, *args)
-
-    monkeypatch.setattr(vector_ops, "_hash_range", counting_range)
     read: dict[str, int] = {}
-    real_read = safetensors_io.Checkpoint.read_bytes
+    real_read = vector_ops._read
 
-    def counting_read(self, name, start=0, stop=None, out=None):
-        buf = real_read(self, name, start, stop, out)
-        key = self.specs[name].file.name
-        read[key] = read.get(key, 0) + buf.size
-        return buf
+    def counting_read(path, copy, offset, out):
+        read[path.name] = read.get(path.name, 0) + out.size
+        return real_read(path, copy, offset, out)
 
-    monkeypatch.setattr(safetensors_io.Checkpoint, "read_bytes", counting_read)
+    monkeypatch.setattr(vector_ops, "_read", counting_read)
     out = folder / "gamma.safetensors"
     record = extract_cli(workspace, str(p["ao"]), str(p["ft"]), out, None, None, None)
 
-    tensor_bytes = Checkpoint(p["ao"]).nbytes
-    assert read == {"ao.safetensors": tensor_bytes, "ft.safetensors": tensor_bytes}  # each read once
+    sizes = {n: p[n[:2]].stat().st_size for n in ("ao.safetensors", "ft.safetensors")}
+    assert read == sizes  # every byte of each input read once (through its copy)
     assert hashed == ["gamma.safetensors"]  # the output, once; the inputs only as they were read
-    assert from_disk == {"ao.safetensors": 0, "ft.safetensors": 0}
     parents = {r.role: r.id for r in record.parents}
     assert parents == {"minuend": _sha(p["ao"]), "subtrahend": _sha(p["ft"])}
     assert record.id == _sha(out)
@@ -142,19 +131,19 @@ def test_a_stored_input_changed_while_it_is_read_is_refused(user, monkeypatch):
     workspace, folder, p = user
     gamma = extract_cli(workspace, str(p["ao"]), str(p["ft"]), folder / "g.safetensors", None, None, None)
     stored = workspace.api.store.path(gamma.id, verify=False)
-    real_read = safetensors_io.Checkpoint.read_bytes
+    real_read = vector_ops._read
     done = []
 
-    def read_then_rot(self, name, start=0, stop=None, out=None):
-        buf = real_read(self, name, start, stop, out)
-        if self.specs[name].file == stored and not done:
+    def read_then_rot(path, copy, offset, out):
+        buf = real_read(path, copy, offset, out)
+        if path == stored and offset > 0 and not done:
             done.append(1)
             with open(stored, "r+b") as f:  # another writer, in the middle of the read
                 f.seek(-1, os.SEEK_END)
                 f.write(b"\x7f")
         return buf
 
-    monkeypatch.setattr(safetensors_io.Checkpoint, "read_bytes", read_then_rot)
+    monkeypatch.setattr(vector_ops, "_read", read_then_rot)
     before = _ids(workspace)
     with pytest.raises((CorruptArtifact, VectorOpError), match=f"{gamma.id}|changed while"):
         merge_cli(workspace, str(p["pt"]), [(gamma.id, 1.1)], folder / "m.safetensors", None, None, False)
@@ -287,3 +276,20 @@ def test_an_input_named_twice_is_read_and_imported_once(user):
     assert roles == dict.fromkeys(("minuend", "subtrahend", "base"), _sha(p["ao"]))
     assert all(not Checkpoint(folder / "z.safetensors").get(k).any() for k in SHAPES)
     assert _ids(workspace) == {_sha(p["ao"]), record.id}
+
+
+def test_copies_go_through_user_space_where_the_kernel_cannot_copy(tmp_path, monkeypatch):
+    """copy_file_range fails across filesystems (EXDEV): the copy is then written from the bytes read."""
+    import errno
+
+    def no_kernel_copy(*args):
+        raise OSError(errno.EXDEV, "Invalid cross-device link")
+
+    monkeypatch.setattr(os, "copy_file_range", no_kernel_copy)
+    monkeypatch.setattr(vector_ops, "CHUNK_BYTES", 512)
+    pa, pb = _checkpoint(tmp_path, "a", 0), _checkpoint(tmp_path, "b", 1)
+    copies = {pa: tmp_path / "copies" / "a.safetensors", pb: tmp_path / "copies" / "b.safetensors"}
+    hashes: dict[Path, str] = {}
+    vector_ops.extract(pa, pb, tmp_path / "g.safetensors", hashes=hashes, copies=copies)
+    assert all(copies[p].read_bytes() == p.read_bytes() for p in (pa, pb))
+    assert hashes[copies[pa]] == _sha(pa) and hashes[copies[pb]] == _sha(pb)
