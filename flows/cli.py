@@ -93,6 +93,7 @@ def _preflight(command: str, home: str | None) -> None:
     from tasks.prefect_task import quiet_failed_run_logs
     from tasks.progress import LOG_FILE_ENV, emit
 
+    wait_for_api()  # first: an unreachable server must leave no home behind
     if not os.environ.get(LOG_FILE_ENV):  # step workers inherit it
         from datetime import UTC, datetime
 
@@ -102,7 +103,6 @@ def _preflight(command: str, home: str | None) -> None:
         slug = "-".join(command.replace("--preset", "").split())
         os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
     emit(f"capvector {command}: home {_home(home)}, log {os.environ[LOG_FILE_ENV]}")
-    wait_for_api()
     quiet_failed_run_logs()  # main() prints a failing run's error, in one line
 
 

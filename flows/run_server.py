@@ -23,6 +23,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import urllib.request
@@ -41,6 +42,9 @@ class RunServer:
         self.port = self._socket.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}/api"
         fd = self._socket.fileno()
+        # The server's own output (a start-up error; uvicorn's complaint when a failing CLI stops it
+        # mid-boot) is not the user's: kept aside, and quoted if the server cannot start.
+        self._output = tempfile.TemporaryFile()
         env = {
             **os.environ,
             "PREFECT_UI_ENABLED": "0",
@@ -66,6 +70,8 @@ class RunServer:
             pass_fds=(fd,),
             preexec_fn=_die_with_parent(os.getpid()),
             stdin=subprocess.DEVNULL,
+            stdout=self._output,
+            stderr=subprocess.STDOUT,
         )
         self._socket.close()  # the server holds its own copy of the listening socket
 
@@ -76,7 +82,7 @@ class RunServer:
         while True:
             if self.process.poll() is not None:
                 code = self.process.returncode
-                raise RuntimeError(f"Prefect's API server exited with code {code} at start")
+                raise RuntimeError(f"Prefect's API server exited with code {code} at start: {self._tail()}")
             try:
                 urllib.request.urlopen(f"{self.url}/health", timeout=2).read()
                 return
@@ -84,6 +90,10 @@ class RunServer:
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"Prefect's API server did not answer within {limit:.0f} s") from None
                 time.sleep(0.05)
+
+    def _tail(self) -> str:
+        self._output.seek(0)
+        return " ".join(self._output.read().decode(errors="replace").split()[-60:])
 
     def stop(self) -> None:
         if self.process.poll() is None:

@@ -51,6 +51,12 @@ class StepRunner:
 
 
 def _outcome(future: PrefectFuture) -> str:
-    future.wait(timeout=0)  # done: records the final state, which `state` would otherwise fetch (stale)
-    state = future.state
+    """How a finished step ended. Never raises: it runs as a done-callback, where an exception (a step
+    whose upstream failed cannot even be resolved) would be printed as a traceback; the flow reports
+    the failure itself, in one line."""
+    try:
+        future.wait(timeout=0)  # records the final state, which `state` would otherwise fetch (stale)
+        state = future.state
+    except Exception:
+        return "failed"
     return "cached" if state.name == "Cached" else "done" if state.is_completed() else state.name.lower()
