@@ -499,8 +499,9 @@ def _sync_file_range():
 
 
 def start_writeback(fd: int, begin: int, end: int) -> None:
-    """Queue bytes [begin, end) for writing to disk without waiting (Linux's sync_file_range), so that
-    they are written while the rest is computed and the fsync at close finds little left to do."""
+    """Queue bytes [begin, end) (`end` 0: the whole file) for writing to disk without waiting (Linux's
+    sync_file_range), so that they are written while the rest is computed and the fsync at close finds
+    little left to do."""
     fn = _sync_file_range()
     if fn is not None:
         fn(fd, begin, end - begin, 2)  # SYNC_FILE_RANGE_WRITE
