@@ -13,6 +13,7 @@ from collections.abc import Iterable
 from datetime import datetime
 from typing import Any
 
+import pandas as pd
 from pydantic import BaseModel, ConfigDict, computed_field
 
 from artifacts.api import ArtifactsAPI
@@ -80,3 +81,28 @@ def read_scores(
         scores["success_rates"][r["task"]] = float(r["success_rate"])
         scores["episodes"][r["task"]] = int(r["n_episodes"])
     return [EvaluationScores.model_validate(s) for s in by_evaluation.values()]
+
+
+EPISODES_SELECT = """
+SELECT evaluation_id, task, seed, success FROM eval_episodes
+WHERE list_contains($evaluations::VARCHAR[], evaluation_id)
+"""
+
+
+def read_episodes(api: ArtifactsAPI, evaluations: Iterable[str]) -> pd.DataFrame:
+    """Every episode of the `evaluations` (full ids): evaluation_id, task, seed (the goal), success.
+
+    From the catalogue, like `read_scores`; an evaluation whose rows are not indexed yet is derived from
+    its document by the same `rows_for`."""
+    evaluations = list(dict.fromkeys(evaluations))
+    frame = api.query(EPISODES_SELECT, {"evaluations": evaluations})
+    missing = set(evaluations) - set(frame["evaluation_id"])
+    extra = []
+    for eval_id in sorted(missing):
+        record = api.get(eval_id)
+        if record.kind != EVALUATION_KIND:
+            raise ValueError(f"{eval_id[:12]} is a {record.kind}, not an evaluation: it has no episodes")
+        extra += rows_for(record, load_doc(api.store, record))["eval_episodes"]
+    if extra:
+        frame = pd.concat([frame, pd.DataFrame(extra)[list(frame.columns)]], ignore_index=True)
+    return frame.astype({"seed": "int64", "success": "bool"})

@@ -142,6 +142,17 @@ class OrthogonalRegularizer(nn.Module):
             self._bound = (id(model), found)
         return self._bound[1]
 
+    def dense_parameters(self, model: nn.Module) -> list[nn.Parameter]:
+        """The model's parameters this loss reads (dense mode)."""
+        if self.mode != "dense":
+            raise ValueError(f"dense_parameters: the regularizer is in {self.mode!r} mode")
+        return self._targets(model)
+
+    def gamma_norm(self) -> float:
+        """‖γ‖₂ over the regularized tensors."""
+        squares = [getattr(self, f"gamma_{i}").double().square().sum() for i in range(len(self.names))]
+        return float(torch.stack(squares).sum().sqrt())
+
     def forward(self, model: nn.Module) -> torch.Tensor:
         targets = self._targets(model)
         terms = []

@@ -13,6 +13,7 @@ Layout of ``run_dir``::
 
     checkpoints/step_XXXXXXXX/{policy.safetensors, aux.safetensors, trainer_state.pt, train_config.json}
     loss_curve.jsonl      one row per log interval: step, mean loss terms, lr, grad_norm, time
+    snapshots/step_XXXXXXXX.safetensors  the policy at each of ``snapshot_steps`` (kept, unlike checkpoints)
     policy.safetensors    final policy weights (config in metadata)
     aux_heads.safetensors final auxiliary heads (only with an aux objective)
     result.json           TrainResult
@@ -71,6 +72,8 @@ class TrainConfig(BaseModel):
     grad_clip: float | None = Field(1.0, gt=0)
     seed: int = 0
     checkpoint_every: int = Field(500, gt=0)
+    # Budgets at which the policy is also kept as it is then (success-vs-steps curves, early endpoints).
+    snapshot_steps: list[int] = Field(default_factory=list)
     keep_checkpoints: int = Field(2, gt=0)
     log_every: int = Field(10, gt=0)
     aux: AuxConfig | None = None
@@ -85,6 +88,12 @@ class TrainConfig(BaseModel):
     def _warmup(self) -> TrainConfig:
         if self.warmup_steps >= self.steps:
             raise ValueError(f"warmup_steps ({self.warmup_steps}) must be < steps ({self.steps})")
+        bad = [s for s in self.snapshot_steps if not 0 < s < self.steps]
+        if bad or len(set(self.snapshot_steps)) != len(self.snapshot_steps):
+            raise ValueError(
+                f"snapshot_steps {self.snapshot_steps} must be distinct and strictly between 0 and "
+                f"steps ({self.steps}): the final weights are the run's result"
+            )
         return self
 
 
@@ -98,6 +107,7 @@ class TrainResult(BaseModel):
     steps_per_s: float
     samples_per_s: float
     final_loss: float
+    snapshots: dict[int, Path] = {}  # step -> the policy's weights after that many steps
 
 
 def lr_at(step: int, config: TrainConfig) -> float:
@@ -259,6 +269,7 @@ def train(
         horizon=objective.horizon if objective else None,
     )
     features = objective.feature_names if objective else ()
+    snapshot_at = set(config.snapshot_steps)
 
     policy.to(device).train()
     params = [p for p in policy.parameters() if p.requires_grad]
@@ -336,6 +347,8 @@ def train(
                 window_count = 0
                 if progress is not None:
                     progress(run.step, config.steps, f"loss {last_loss:.4f}")
+            if run.step in snapshot_at:
+                save_policy(policy, snapshot_path(run_dir, run.step))
             if run.step % config.checkpoint_every == 0 or done:
                 run.train_seconds += time.perf_counter() - t_segment
                 curve.flush()
@@ -363,9 +376,14 @@ def train(
         steps_per_s=done_steps / elapsed if done_steps and elapsed > 0 else 0.0,
         samples_per_s=done_steps * config.batch_size / elapsed if done_steps and elapsed > 0 else 0.0,
         final_loss=last_loss,
+        snapshots={s: snapshot_path(run_dir, s) for s in sorted(snapshot_at)},
     )
     (run_dir / "result.json").write_text(result.model_dump_json(indent=1))
     return result
+
+
+def snapshot_path(run_dir: Path, step: int) -> Path:
+    return run_dir / "snapshots" / f"step_{step:08d}.safetensors"
 
 
 def _term_names(policy_terms: Mapping, objective: AuxObjective | None, extra: Mapping) -> list[str]:

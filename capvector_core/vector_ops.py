@@ -638,6 +638,62 @@ def merge(
         pool.shutdown()
 
 
+def null_vector(
+    vector: PathLike,
+    out: PathLike,
+    seed: int,
+    max_shard_bytes: int = DEFAULT_MAX_SHARD_BYTES,
+    overwrite: bool = False,
+    hashes: dict[Path, str] | None = None,
+) -> Path:
+    """A random vector with `vector`'s per-tensor L2 norms: the control "any direction of γ's size".
+
+    Each float tensor is Gaussian noise (numpy's PCG64 seeded with `seed`, tensors in the file's order)
+    rescaled to the norm of the same tensor of `vector`; non-float tensors are copied. The base the
+    vector was made for carries over, so it merges into the same θ_pt.
+    """
+    v = Checkpoint(vector)
+    names = list(v.specs)
+    pool = ThreadPoolExecutor(1)
+    reader = _HashingReader(v, pool)
+    rng = np.random.default_rng(seed)
+
+    def compute(n: str) -> Iterator[np.ndarray]:
+        dtype = v.specs[n].dtype
+        bounds = v.chunk_bounds(n, CHUNK_BYTES)
+        if dtype not in FLOATS:
+            for x in reader.chunks(n, bounds):
+                yield x
+            return
+        squares, size = 0.0, 0
+        for x in reader.chunks(n, bounds):
+            wide = _widen(x, dtype).astype(np.float64)
+            squares += float(np.dot(wide, wide))
+            size += x.size
+        noise = rng.standard_normal(size)
+        length = float(np.linalg.norm(noise))
+        noise *= math.sqrt(squares) / length if length > 0 else 0.0
+        yield _narrow(noise.astype(_wide(dtype)), dtype)
+
+    meta = {
+        "capvector.kind": "vector",
+        "capvector.formula": "random, with the per-tensor norms of vector",
+        "capvector.seed": str(seed),
+        **{
+            k: v.metadata[k]
+            for k in ("capvector.include", "capvector.exclude", "capvector.partial", "capvector.base_sha256")
+            if k in v.metadata
+        },
+    }
+    try:
+        return _run(
+            out, names, v, {"vector": reader}, meta, compute, max_shard_bytes, overwrite, hashes=hashes
+        )
+    finally:
+        reader.close()
+        pool.shutdown()
+
+
 class VectorStat(BaseModel):
     """One row of `stats`: a tensor, a module group (name prefix), or everything (`level="all"`)."""
 

@@ -44,7 +44,7 @@ class State:
 
 
 # Commands that run a flow: they get the run's one Prefect API server (flows.run_server).
-FLOW_COMMANDS = {"run", "evaluate", "reevaluate", "sweep", "schedule"}
+FLOW_COMMANDS = {"run", "study", "evaluate", "reevaluate", "sweep", "schedule"}
 
 
 @app.callback()
@@ -214,6 +214,32 @@ def reevaluate(
         _print_json(changes)
     else:
         console.print(summary_markdown(changes) if changes else "nothing selected")
+
+
+@app.command()
+def study(
+    preset: Annotated[
+        str, typer.Option(help="study-small | study-state | study-pixels | a YAML path")
+    ] = "study-small",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    report: Annotated[Path | None, typer.Option(help="also write the Markdown report to this file")] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
+    from flows.study import study_flow
+    from flows.study_config import load_study
+
+    config = load_study(preset, overrides)
+    _preflight(f"study --preset {preset}", home)
+    result = study_flow(config.model_dump(mode="json"), _home(home))
+    if report is not None:
+        report.write_text(result["markdown"])
+    if as_json:
+        _print_json({k: v for k, v in result.items() if k != "markdown"})
+        return
+    typer.echo(result["markdown"])  # Markdown as written (a console would re-wrap its tables)
+    typer.echo(f"study: {result['report']}   (capvector lineage {result['report'][:12]})")
 
 
 @app.command()

@@ -33,9 +33,12 @@ ArmName = Literal[
 
 
 class Arm(BaseModel):
-    """One downstream fine-tuning recipe: where it starts and what it adds to standard SFT."""
+    """One downstream fine-tuning recipe: where it starts and what it adds to standard SFT.
 
-    init: Literal["pretrained", "meta"]
+    init: θ_pt, θ_meta = θ_pt + α·γ, the null control θ_pt + α·γ_null (`null_meta`, regularized with
+    γ_null), or one of the extraction checkpoints θ_ao (`auxiliary`) and θ_ft (`standard`)."""
+
+    init: Literal["pretrained", "meta", "null_meta", "auxiliary", "standard"]
     aux: bool = False
     orthogonal: bool = False
     adapter: Literal["full", "lora", "lora_sp"] = "full"
@@ -50,6 +53,10 @@ ARMS: dict[str, Arm] = {
     "capvector_lora": Arm(init="meta", orthogonal=True, adapter="lora"),
     "sft_lora_sp": Arm(init="pretrained", adapter="lora_sp"),
     "capvector_lora_sp": Arm(init="meta", orthogonal=True, adapter="lora_sp"),
+    # The study's controls (flows.study): they need a null vector and the extraction checkpoints per draw.
+    "null_capvector": Arm(init="null_meta", orthogonal=True),
+    "sft_from_ao": Arm(init="auxiliary"),
+    "sft_from_ft": Arm(init="standard"),
 }
 
 
@@ -179,9 +186,12 @@ class PipelineConfig(BaseModel):
         train = self.extraction.model_copy(update={"aux": self.aux if auxiliary else None})
         return TrainStepConfig(train=train)
 
-    def downstream_step(self, arm: str, seed: int, orthogonal_weight: float | None = None) -> TrainStepConfig:
+    def downstream_step(
+        self, arm: str, seed: int, orthogonal_weight: float | None = None, aux_weight: float | None = None
+    ) -> TrainStepConfig:
         spec = ARMS[arm]
-        update = {"seed": seed, "aux": self.aux if spec.aux else None}
+        aux = self.aux if aux_weight is None else self.aux.model_copy(update={"weight": aux_weight})
+        update = {"seed": seed, "aux": aux if spec.aux else None}
         if spec.adapter != "full" and self.adapter_lr is not None:
             update["lr"] = self.adapter_lr
         train = self.downstream.model_copy(update=update)
@@ -230,7 +240,11 @@ def preset_path(preset: str) -> Path:
     return candidate
 
 
-def load_config(preset: str = "quick", overrides: list[str] | None = None) -> PipelineConfig:
+def load_config(
+    preset: str = "quick", overrides: list[str] | None = None, model: type[PipelineConfig] | None = None
+) -> PipelineConfig:
+    """A preset with `--set` overrides, validated by `model` (PipelineConfig; a study's is a subclass)."""
+    model = model or PipelineConfig
     path = preset_path(preset)
     try:
         data = yaml.safe_load(path.read_text()) or {}
@@ -238,7 +252,9 @@ def load_config(preset: str = "quick", overrides: list[str] | None = None) -> Pi
         raise ValueError(f"preset {path}: {yaml_problem(e)}") from None
     if not isinstance(data, dict):
         raise ValueError(f"preset {path}: expected a mapping of settings, got a {type(data).__name__}")
-    return PipelineConfig.model_validate(apply_overrides(data, list(overrides or []), PipelineConfig))
+    if model is PipelineConfig and "study" in data:
+        raise ValueError(f"preset {path} is a study: run it with `capvector study --preset {preset}`")
+    return model.model_validate(apply_overrides(data, list(overrides or []), model))
 
 
 def yaml_problem(error: yaml.YAMLError) -> str:

@@ -25,7 +25,7 @@ from tasks.data import collect_demos_task
 from tasks.evaluation import evaluate_task
 from tasks.prefect_task import bind_worker_to_parent
 from tasks.reporting import load_report, report_task
-from tasks.training import train_task
+from tasks.training import TrainStepConfig, train_task
 from tasks.vectors import extract_task, merge_task
 from tasks.workspace import workspace_for
 
@@ -86,16 +86,21 @@ def submit_arm(
     meta: Any = None,
     orthogonal_weight: float | None = None,
     label: str | None = None,
+    aux_weight: float | None = None,
+    selection: Any = None,
+    step_config: TrainStepConfig | None = None,
 ) -> Any:
-    """Id or future of one downstream checkpoint (arm × seed)."""
+    """Id or future of one downstream checkpoint (arm × seed). `stage` holds what the arm's `init` names
+    (`pretrained`, `meta`, ...); `meta` overrides θ_meta; `selection`, the choice of a value it uses."""
     spec = ARMS[arm]
-    inputs = {
-        "data": stage["data"]["downstream"],
-        "init": (meta or stage["meta"]) if spec.init == "meta" else stage["pretrained"],
-    }
+    init = meta if spec.init == "meta" and meta is not None else stage[spec.init]
+    inputs = {"data": stage["data"]["downstream"], "init": init}
     if spec.orthogonal:
-        inputs["vector"] = stage["vector"]
-    step_config = config.downstream_step(arm, seed, orthogonal_weight)
+        inputs["vector"] = stage["null_vector" if spec.init == "null_meta" else "vector"]
+    if selection is not None:
+        inputs["selection"] = selection
+    if step_config is None:
+        step_config = config.downstream_step(arm, seed, orthogonal_weight, aux_weight)
     return steps.submit(train_task, label or f"downstream {arm} seed {seed}", inputs, _dump(step_config))
 
 

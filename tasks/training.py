@@ -37,6 +37,10 @@ class OrthogonalSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     weight: float = Field(1e-4, allow_inf_nan=False)  # λ; NaN/inf refused at validation
+    # "action_gradient": λ = weight × ‖∇ action loss‖ / ‖γ‖ measured at θ_meta before training (over the
+    # regularized tensors), so weight 1 means "a gradient as large as the action loss's" on any model;
+    # "absolute": λ = weight (the paper's 1e-4 was tuned on a 7B model, where Σ|γ·Δ| is far larger).
+    scale: Literal["absolute", "action_gradient"] = "absolute"
     lora_mode: Literal["lora_exact", "lora_a"] = "lora_exact"
     include: list[str] | None = None
     exclude: list[str] | None = None
@@ -81,6 +85,8 @@ def _orthogonal(
         raise ValueError("the orthogonal regularizer needs inputs `vector` (γ) and `init` (θ_meta)")
     settings = cfg.orthogonal
     mode = "dense" if cfg.adapter == "full" else settings.lora_mode
+    if settings.scale == "action_gradient" and mode != "dense":
+        raise ValueError("orthogonal.scale 'action_gradient' needs full fine-tuning (adapter 'full')")
     return OrthogonalRegularizer(
         model,
         workspace.path(inputs["vector"]),
@@ -92,12 +98,35 @@ def _orthogonal(
     )
 
 
-def _calibration_batches(model: Policy, dataset: DemoDataset, seed: int) -> list[dict[str, torch.Tensor]]:
-    """Batches from the training data for LoRA-SP's dense merge (its mean score vector)."""
+def action_gradient_scale(
+    model: Policy, dataset: DemoDataset, regularizer: OrthogonalRegularizer, seed: int, batch_size: int
+) -> float:
+    """‖∇ action loss‖ / ‖γ‖ over the regularized tensors, at the model as training starts.
+
+    The regularizer's gradient is λ·γ ⊙ sign(θ − θ_meta), of norm λ·‖γ‖ once every Δ is non-zero; the
+    action loss's gradient norm is averaged over a few training batches (a fixed generator: no RNG state
+    of the run is used).
+    """
+    params = regularizer.dense_parameters(model)
+    norms = []
+    for batch in _calibration_batches(model, dataset, seed, batch_size):
+        loss = torch.stack(list(model.compute_loss(batch).terms.values())).sum()
+        grads = torch.autograd.grad(loss, params, allow_unused=True)
+        norms.append(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads if g is not None])))
+    gamma = regularizer.gamma_norm()
+    if gamma == 0:
+        raise ValueError("γ is zero on every regularized tensor: no orthogonal loss can be scaled to it")
+    return float(torch.stack(norms).mean()) / gamma
+
+
+def _calibration_batches(
+    model: Policy, dataset: DemoDataset, seed: int, batch_size: int = 256
+) -> list[dict[str, torch.Tensor]]:
+    """Batches from the training data (LoRA-SP's dense merge, the orthogonal loss's scale)."""
     n, make_batch = model.make_batcher(dataset, model.device)
     generator = torch.Generator().manual_seed(seed)
     return [
-        make_batch(torch.randint(0, n, (min(256, n),), generator=generator))
+        make_batch(torch.randint(0, n, (min(batch_size, n),), generator=generator))
         for _ in range(CALIBRATION_BATCHES)
     ]
 
@@ -109,6 +138,8 @@ def _policy_loss(model: Policy, batch: dict[str, torch.Tensor]) -> None:
 
 def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     cfg = TrainStepConfig.model_validate(config)
+    if cfg.train.snapshot_steps and cfg.adapter != "full":
+        raise ValueError(f"step {step!r}: train.snapshot_steps needs full fine-tuning (adapter 'full')")
     if "data" not in inputs:
         raise ValueError(f"step {step!r}: training needs a `data` input (a dataset artifact id)")
 
@@ -121,7 +152,15 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             lora_sp.apply_lora_sp(model, cfg.lora_sp)
         extra: dict[str, Any] = {}
         regularizer = _orthogonal(workspace, model, cfg, inputs)
+        lam = {}
         if regularizer is not None:
+            if cfg.orthogonal.scale == "action_gradient":
+                scale = action_gradient_scale(
+                    model, dataset, regularizer, cfg.train.seed, cfg.train.batch_size
+                )
+                regularizer.weight = cfg.orthogonal.weight * scale
+                lam["lambda_scale"] = scale
+            lam["orthogonal_lambda"] = regularizer.weight
             extra["orthogonal"] = regularizer
         if cfg.adapter == "lora_sp":
             extra["lora_sp"] = lora_sp.lora_sp_loss
@@ -140,6 +179,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             "resumed_from_step": result.resumed_from_step,
             "trainable_parameters": trainable,
             "adapter": cfg.adapter,
+            **lam,
         }
         with workspace.scratch() as tmp:
             adapter_dir = None
@@ -171,12 +211,25 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                     **meta,
                 )
                 parents.append((adapter.id, "adapter"))
+            snapshots = {}
+            for budget, path in result.snapshots.items():  # before the checkpoint, which names them
+                snapshot = workspace.api.register_file(
+                    path,
+                    kind="checkpoint",
+                    name=f"{step} @ {budget} steps",
+                    config={"train_step": cfg.model_dump(mode="json"), "budget": budget, "of_run": key},
+                    parents=parents,
+                    **meta,
+                )
+                snapshots[str(budget)] = snapshot.id
             record_config = {
                 "train_step": cfg.model_dump(mode="json"),
                 "cache_key": key,
                 "summary": summary,
                 "curve": _curve_rows(result.loss_curve_path),
+                "snapshots": snapshots,
             }
+            parents += [(i, "snapshot", {"budget": int(b)}) for b, i in snapshots.items()]
             checkpoint = workspace.api.register_file(
                 weights, kind="checkpoint", name=step, config=record_config, parents=parents, **meta
             )
@@ -184,6 +237,14 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
         return checkpoint.id
 
     return cached_step(workspace, "train", inputs, config, produce)
+
+
+def snapshots_of(workspace: Workspace, checkpoint_id: str) -> dict[int, str]:
+    """Budget (steps) -> id of the checkpoint a training run kept at that budget; the final one included."""
+    record = workspace.api.get(checkpoint_id)
+    found = {int(b): i for b, i in (record.config or {}).get("snapshots", {}).items()}
+    found[record.config["train_step"]["train"]["steps"]] = record.id
+    return dict(sorted(found.items()))
 
 
 def _curve_rows(path: Path) -> list[dict[str, Any]]:

@@ -117,6 +117,39 @@ def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: d
     return cached_step(workspace, "merge", inputs, config, produce)
 
 
+class NullVectorConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    seed: int = Field(0, description="seed of the random directions")
+
+
+def run_null_vector(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    """A random vector with the per-tensor norms of input `vector` (the null-vector control)."""
+    cfg = NullVectorConfig.model_validate(config)
+    if "vector" not in inputs:
+        raise ValueError(f"step {step!r}: a null vector needs a 'vector' input (whose norms it takes)")
+
+    def produce(key: str) -> str:
+        with workspace.scratch() as tmp:
+            out = vector_ops.null_vector(
+                workspace.path(inputs["vector"]), tmp / "vector.safetensors", cfg.seed
+            )
+            record = workspace.api.register_file(
+                out,
+                kind="vector",
+                name=step,
+                config={
+                    "formula": "random, with the per-tensor norms of vector",
+                    "seed": cfg.seed,
+                    "cache_key": key,
+                },
+                parents=[(inputs["vector"], "norms_from")],
+                **provenance(),
+            )
+        return record.id
+
+    return cached_step(workspace, "null_vector", inputs, config, produce)
+
+
 @pipeline_task("extract_vector")
 def extract_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     return run_extract(workspace_for(home), step, inputs, config)
@@ -125,3 +158,8 @@ def extract_task(home: str, step: str, inputs: dict[str, str], config: dict[str,
 @pipeline_task("merge")
 def merge_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     return run_merge(workspace_for(home), step, inputs, config)
+
+
+@pipeline_task("null_vector")
+def null_vector_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_null_vector(workspace_for(home), step, inputs, config)

@@ -1,0 +1,306 @@
+"""The `study` flow: a whole experiment on CapVector, from demonstrations to the analysed report.
+
+    demos -> θ_pt
+    -> extraction lr chosen on D_ext validation goals          (selection artifact)
+    -> per γ draw d: θ_ft^d, θ_ao^d (chosen lr) -> γ^d, γ_null^d (random, γ^d's per-tensor norms)
+    -> auxiliary weight chosen (downstream, validation goals)  (selection artifact)
+    -> α × λ chosen for CapVector on draw 0 (validation goals) (selection artifact)
+    -> per draw: θ_meta^d = θ_pt + α·γ^d, θ_null^d = θ_pt + α·γ_null^d
+    -> arms × draws × seeds, each kept at every curve budget, evaluated on the same test goals
+    -> preconditions, paired comparisons with hierarchical-bootstrap CIs, MDD -> `study` artifact
+
+Every value is chosen on validation goals by a `select` step whose parents are the evaluations it
+chose from, and every run that uses the value has the selection as an input (lineage: `selected_by`).
+Selection runs use `study.tuning_seed`, never a compared run's seed. The flow blocks only where a
+choice is needed to configure the next runs; everything else is submitted at once (flows.steps).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from prefect import flow
+
+from flows.pipeline import step_runner, submit_arm
+from flows.runs import publish_markdown, recorded_run
+from flows.steps import StepRunner, resolve
+from flows.study_config import SHARED_ARMS, StudyConfig
+from tasks.data import collect_demos_task
+from tasks.evaluation import evaluate_task
+from tasks.held_out_loss import held_out_loss_task
+from tasks.selection import chosen, select_task
+from tasks.study_analysis import analyse_study_task, label
+from tasks.study_report import load_study_report, study_markdown
+from tasks.training import snapshots_of, train_task
+from tasks.vectors import extract_task, merge_task, null_vector_task
+from tasks.workspace import Workspace, workspace_for
+
+
+def _dump(model: Any) -> dict[str, Any]:
+    return model.model_dump(mode="json")
+
+
+def study_steps(cfg: StudyConfig) -> int:
+    """How many steps a study submits (progress shows `k/N`)."""
+    s = cfg.study
+    cells = len(s.alphas) * len(s.lambda_scales)
+    runs = sum(len(cfg.seeds) * (1 if arm in SHARED_ARMS else len(s.draws)) for arm in s.arms)
+    return (
+        5  # four demo sets, θ_pt
+        + 2 * len(s.extraction_lrs)
+        + 1  # lr grid: runs, validations, selection
+        + 2 * cells
+        + 1  # auxiliary weight grid
+        + len(s.alphas)
+        + 2 * cells
+        + 1  # α × λ grid: merges, runs, validations, selection
+        + 13
+        * len(
+            s.draws
+        )  # θ_ft, θ_ao, γ, γ_null, 2 validations, 4 held-out losses, 2 merges, θ_meta's validation
+        + 1  # θ_pt's validation
+        + runs * (1 + len(cfg.curve_budgets))  # compared runs and their test evaluations
+        + 1  # analysis
+    )
+
+
+class _Study:
+    """The flow's state: its config, where steps go, and what was submitted so far."""
+
+    def __init__(self, cfg: StudyConfig, steps: StepRunner, workspace: Workspace):
+        self.cfg, self.steps, self.workspace = cfg, steps, workspace
+        self.analysis_inputs: dict[str, Any] = {}
+
+    def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
+        return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
+
+    def at_budget(self, checkpoint: Any, budget: int) -> str:
+        """The id of the checkpoint a run kept after `budget` steps (waits for the run)."""
+        return snapshots_of(self.workspace, resolve(checkpoint))[budget]
+
+    def select(self, name: str, cells: list[tuple[dict[str, Any], Any]], context: dict[str, Any]) -> str:
+        """A `select` step over (values, validation evaluation) cells; its id (waits for it)."""
+        inputs = {f"cell {i}": evaluation for i, (_, evaluation) in enumerate(cells)}
+        config = {
+            "name": name,
+            "context": context,
+            "candidates": [{"values": v, "evaluation": f"cell {i}"} for i, (v, _) in enumerate(cells)],
+        }
+        selection = resolve(self.submit(select_task, f"select {name}", inputs, config))
+        self.analysis_inputs[label("selection", name)] = selection
+        return selection
+
+
+def _run_study(study: _Study) -> dict[str, Any]:
+    cfg, s, submit = study.cfg, study.cfg.study, study.submit
+    tune = s.tuning_seed
+    validation_down = cfg.eval_config(validation=True)
+    validation_ext = cfg.extraction_validation()
+
+    data = {
+        split: submit(collect_demos_task, f"demos {split}", {}, cfg.demo_config(split))
+        for split in ("pretrain", "extraction", "downstream")
+    }
+    data["heldout"] = submit(collect_demos_task, "demos extraction (held out)", {}, cfg.heldout_demo_config())
+    pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
+    base_stage = {"data": data, "pretrained": pretrained}
+
+    # Everything that needs no choice yet: the lr grid, the auxiliary grid, SFT's runs.
+    extraction_inputs = {"data": data["extraction"], "init": pretrained}
+    lr_cells = []
+    for lr in s.extraction_lrs:
+        run = submit(
+            train_task,
+            f"tune extraction θ_ft lr={lr}",
+            extraction_inputs,
+            cfg.extraction_run(False, tune, lr),
+        )
+        lr_cells.append(
+            ({"lr": lr}, submit(evaluate_task, f"validate θ_ft lr={lr}", {"checkpoint": run}, validation_ext))
+        )
+    aux_runs = [
+        (
+            w,
+            submit_arm(
+                study.steps,
+                cfg,
+                base_stage,
+                "aux",
+                tune,
+                label=f"tune aux weight={w}",
+                step_config=cfg.study_downstream("aux", tune, aux_weight=w),
+            ),
+        )
+        for w in s.aux_weights
+    ]
+    runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
+    shared = -1
+    if "sft" in s.arms:
+        for seed in cfg.seeds:
+            runs["sft", shared, seed] = submit_arm(
+                study.steps, cfg, base_stage, "sft", seed, step_config=cfg.study_downstream("sft", seed)
+            )
+    pt_validation = submit(
+        evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, validation_ext
+    )
+    study.analysis_inputs[label("extval", "pt", shared)] = pt_validation
+
+    # (a) the extraction lr, then every draw's θ_ft, θ_ao, γ and null vector.
+    lr_selection = study.select("extraction lr", lr_cells, {"run": "θ_ft", "seed": tune})
+    lr = chosen(study.workspace, lr_selection)["lr"]
+    draws: dict[int, dict[str, Any]] = {}
+    for d in s.draws:
+        inputs = {**extraction_inputs, "selection": lr_selection}
+        ft = submit(train_task, f"draw {d} standard SFT θ_ft", inputs, cfg.extraction_run(False, d, lr))
+        ao = submit(train_task, f"draw {d} auxiliary SFT θ_ao", inputs, cfg.extraction_run(True, d, lr))
+        vector = submit(
+            extract_task,
+            f"draw {d} capability vector γ",
+            {"minuend": ao, "subtrahend": ft, "base": pretrained},
+            cfg.vector,
+        )
+        null = submit(null_vector_task, f"draw {d} null vector", {"vector": vector}, {"seed": d})
+        for which, run in (("ft", ft), ("ao", ao)):
+            study.analysis_inputs[label("extval", which, d)] = submit(
+                evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, validation_ext
+            )
+        draws[d] = {**base_stage, "standard": ft, "auxiliary": ao, "vector": vector, "null_vector": null}
+        for arm in ("sft_from_ao", "sft_from_ft"):
+            if arm in s.arms:
+                for seed in cfg.seeds:
+                    runs[arm, d, seed] = submit_arm(
+                        study.steps, cfg, draws[d], arm, seed, step_config=cfg.study_downstream(arm, seed)
+                    )
+
+    # The α × λ grid on draw 0 (tuning seed).
+    first = draws[s.draws[0]]
+    grid_runs = []
+    for alpha in s.alphas:
+        meta = submit(
+            merge_task,
+            f"tune merge θ_meta α={alpha}",
+            {"base": pretrained, "vector": first["vector"]},
+            cfg.merge_config(alpha),
+        )
+        for scale in s.lambda_scales:
+            run = submit_arm(
+                study.steps,
+                cfg,
+                first,
+                "capvector",
+                tune,
+                meta=meta,
+                label=f"tune capvector α={alpha} λ={scale}",
+                step_config=cfg.study_downstream("capvector", tune, lambda_scale=scale),
+            )
+            grid_runs.append(({"alpha": alpha, "lambda_scale": scale}, run))
+
+    # Choices on validation goals at the selection budget.
+    budget = cfg.select_budget
+
+    def validate(values: dict[str, Any], run: Any, what: str) -> tuple[dict[str, Any], Any]:
+        step = f"validate {what} @ {budget}"
+        return values, submit(
+            evaluate_task, step, {"checkpoint": study.at_budget(run, budget)}, validation_down
+        )
+
+    aux_cells = [validate({"aux_weight": w}, run, f"aux weight={w}") for w, run in aux_runs]
+    grid_cells = [validate(v, run, f"capvector α={v['alpha']} λ={v['lambda_scale']}") for v, run in grid_runs]
+    context = {"seed": tune, "budget": budget, "draw": s.draws[0]}
+    aux_selection = study.select("auxiliary weight", aux_cells, context)
+    grid_selection = study.select("α and λ", grid_cells, context)
+    aux_weight = chosen(study.workspace, aux_selection)["aux_weight"]
+    best = chosen(study.workspace, grid_selection)
+    alpha, scale = best["alpha"], best["lambda_scale"]
+
+    if "aux" in s.arms:
+        for seed in cfg.seeds:
+            runs["aux", shared, seed] = submit_arm(
+                study.steps,
+                cfg,
+                base_stage,
+                "aux",
+                seed,
+                selection=aux_selection,
+                step_config=cfg.study_downstream("aux", seed, aux_weight=aux_weight),
+            )
+    merge = cfg.merge_config(alpha)
+    for d, stage in draws.items():
+        stage["meta"] = submit(
+            merge_task,
+            f"draw {d} merge θ_meta",
+            {"base": pretrained, "vector": stage["vector"], "selection": grid_selection},
+            merge,
+        )
+        stage["null_meta"] = submit(
+            merge_task,
+            f"draw {d} merge θ_null",
+            {"base": pretrained, "vector": stage["null_vector"], "selection": grid_selection},
+            merge,
+        )
+        study.analysis_inputs[label("extval", "meta", d)] = submit(
+            evaluate_task, f"validate draw {d} θ_meta on D_ext", {"checkpoint": stage["meta"]}, validation_ext
+        )
+        for arm in ("meta_sft", "capvector", "null_capvector"):
+            if arm in s.arms:
+                for seed in cfg.seeds:
+                    runs[arm, d, seed] = submit_arm(
+                        study.steps,
+                        cfg,
+                        stage,
+                        arm,
+                        seed,
+                        selection=grid_selection,
+                        step_config=cfg.study_downstream(
+                            arm, seed, lambda_scale=scale if arm != "meta_sft" else None
+                        ),
+                    )
+
+    # Test goals: every compared run at every budget; the extraction runs' held-out losses.
+    test = cfg.eval_config()
+    for (arm, d, seed), run in runs.items():
+        for b, checkpoint in snapshots_of(study.workspace, resolve(run)).items():
+            step = f"test {arm}" + ("" if d == shared else f" draw {d}") + f" seed {seed} @ {b}"
+            study.analysis_inputs[label("test", arm, d, seed, b)] = submit(
+                evaluate_task, step, {"checkpoint": checkpoint}, test
+            )
+    quarter = cfg.extraction_snapshots[-1]
+    for d, stage in draws.items():
+        for which in ("standard", "auxiliary"):
+            kept = snapshots_of(study.workspace, resolve(stage[which]))
+            for b in (quarter, cfg.extraction.steps):
+                study.analysis_inputs[label("loss", which, d, b)] = submit(
+                    held_out_loss_task,
+                    f"held-out loss draw {d} {which} @ {b}",
+                    {"checkpoint": kept[b], "data": data["heldout"]},
+                    {},
+                )
+
+    inputs = {k: resolve(v) for k, v in study.analysis_inputs.items()}
+    design = {
+        "name": cfg.name,
+        "arms": list(s.arms),
+        "draws": list(s.draws),
+        "seeds": list(cfg.seeds),
+        "primary_budget": s.primary_budget,
+        "final_budget": cfg.downstream.steps,
+        "extraction_steps": cfg.extraction.steps,
+        "flat_tolerance": s.flat_tolerance,
+        "n_boot": s.n_boot,
+        "chosen": {"extraction_lr": lr, "aux_weight": aux_weight, "alpha": alpha, "lambda_scale": scale},
+    }
+    report = resolve(submit(analyse_study_task, f"analyse study {cfg.name}", inputs, design))
+    return {"report": report, "selections": {k: v for k, v in inputs.items() if k.startswith("selection")}}
+
+
+@flow(name="study", log_prints=True, task_runner=step_runner(), persist_result=False)
+def study_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
+    """Run (or resume from cache) a study; returns the report's id and the selections' ids."""
+    cfg = StudyConfig.model_validate(config)
+    workspace = workspace_for(home)
+    steps = StepRunner(home, study_steps(cfg), f"study {cfg.name}")
+    with recorded_run(workspace, "study", {"config": config, "home": home}):
+        ids = _run_study(_Study(cfg, steps, workspace))
+        markdown = study_markdown(workspace, load_study_report(workspace, ids["report"]))
+        publish_markdown(f"{cfg.name}-study", markdown, f"capvector study {cfg.name}")
+    return {**ids, "markdown": markdown}

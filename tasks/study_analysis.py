@@ -1,0 +1,258 @@
+"""Step: analyse a study — preconditions, paired comparisons, curves, design MDD — into a `study` artifact.
+
+Inputs are labelled (`label`): `test/<arm>/<draw>/<seed>/<budget>` (test-goal evaluations of the
+compared runs; draw -1 for arms shared by every draw), `extval/<ft|ao|meta|pt>/<draw>` (D_ext
+validation evaluations), `loss/<standard|auxiliary>/<draw>/<budget>` (held-out action losses) and
+`selection/<name>`. Scores come from the evaluations' episodes (artifacts.scores.read_episodes); the
+statistics are tasks.study_statistics'. The document holds no timings (its id depends on results
+only); the rendered report reads speeds from the checkpoints' records.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pandas as pd
+from pydantic import BaseModel, ConfigDict
+
+from artifacts.scores import read_episodes, read_scores
+from tasks.caching import cached_step
+from tasks.held_out_loss import measured_loss
+from tasks.prefect_task import pipeline_task
+from tasks.study_statistics import SHARED_DRAW, Comparison, CurvePoint, paired_difference, success_curve
+from tasks.workspace import Workspace, provenance, workspace_for
+
+STUDY_KIND = "study"
+COMPARED = (  # (arm, baseline): the report's headline, then the controls
+    ("capvector", "sft"),
+    ("capvector", "aux"),
+    ("capvector", "meta_sft"),
+    ("capvector", "null_capvector"),
+    ("aux", "sft"),
+    ("sft_from_ao", "sft_from_ft"),
+    ("meta_sft", "sft"),
+)
+
+
+def label(*parts: Any) -> str:
+    return "/".join(str(p) for p in parts)
+
+
+class StudyDesign(BaseModel):
+    """What the analysis needs besides the evaluations: the declared endpoints and the choices made."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    arms: list[str]
+    draws: list[int]
+    seeds: list[int]
+    primary_budget: int
+    final_budget: int
+    extraction_steps: int
+    flat_tolerance: float
+    n_boot: int
+    chosen: dict[str, float]
+
+
+class Precondition(BaseModel):
+    key: str
+    claim: str
+    holds: bool | None
+    """True: shown; False: contradicted; None: not shown either way (the CI includes zero)."""
+    detail: str
+    comparison: Comparison | None = None
+
+
+class StudyReport(BaseModel):
+    design: StudyDesign
+    goals_per_task: int
+    tasks: list[str]
+    preconditions: list[Precondition]
+    comparisons: list[Comparison]
+    curves: dict[str, list[CurvePoint]]
+    selections: dict[str, str]
+    convergence: list[dict[str, Any]]
+    final_checkpoints: dict[str, list[str]]
+    """Arm -> its runs' final checkpoints (where the rendered report reads time per step)."""
+
+
+def _parse(inputs: dict[str, str], kind: str) -> list[tuple[list[str], str]]:
+    return [(k.split("/")[1:], v) for k, v in sorted(inputs.items()) if k.split("/")[0] == kind]
+
+
+def _episodes(workspace: Workspace, labelled: list[tuple[dict[str, Any], str]]) -> pd.DataFrame:
+    """One row per episode with the study_statistics columns; `goal` is the episode's env seed."""
+    frame = read_episodes(workspace.api, [e for _, e in labelled])
+    keys = pd.DataFrame([{**k, "evaluation_id": e} for k, e in labelled])
+    rows = frame.merge(keys, on="evaluation_id").rename(columns={"seed_x": "goal", "seed_y": "seed"})
+    return rows[["arm", "draw", "seed", "task", "goal", "budget", "success"]]
+
+
+def _verdict(c: Comparison, sign: int = 1) -> bool | None:
+    """Shown (CI on the claimed side of 0), contradicted (CI on the other side) or neither."""
+    low, high = sign * c.ci_low, sign * c.ci_high
+    low, high = min(low, high), max(low, high)
+    return True if low > 0 else False if high < 0 else None
+
+
+def _compare(episodes: pd.DataFrame, arm: str, baseline: str, budget: int, n_boot: int) -> Comparison | None:
+    arms = set(episodes["arm"])
+    if arm not in arms or baseline not in arms:
+        return None
+    return paired_difference(episodes, arm, baseline, budget, n_boot=n_boot)
+
+
+def _convergence(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -> list[dict[str, Any]]:
+    losses: dict[tuple[str, int], dict[int, float]] = {}
+    for (which, draw, budget), m in _parse(inputs, "loss"):
+        losses.setdefault((which, int(draw)), {})[int(budget)] = measured_loss(workspace, m)
+    rows = []
+    for (which, draw), by_budget in sorted(losses.items()):
+        (early, late), final = sorted(by_budget)[-2:], design.extraction_steps
+        drop = (by_budget[early] - by_budget[late]) / by_budget[early]
+        rows.append(
+            {
+                "run": which,
+                "draw": draw,
+                "loss_at": {str(b): v for b, v in sorted(by_budget.items())},
+                "relative_drop": drop,
+                "flat": drop < design.flat_tolerance,
+                "final_step": final,
+            }
+        )
+    return rows
+
+
+def _preconditions(
+    workspace: Workspace,
+    inputs: dict[str, str],
+    design: StudyDesign,
+    episodes_ext: pd.DataFrame,
+    comparisons: list[Comparison],
+    convergence: list[dict[str, Any]],
+) -> list[Precondition]:
+    flat = [r for r in convergence if r["flat"]]
+    drops = ", ".join(
+        f"θ_{'ft' if r['run'] == 'standard' else 'ao'}^{r['draw']} {100 * r['relative_drop']:+.1f} %"
+        for r in convergence
+    )
+    result = [
+        Precondition(
+            key="a",
+            claim="the extraction runs converge (lr chosen on D_ext validation; held-out action loss flat "
+            f"over the last quarter: fell < {100 * design.flat_tolerance:.0f} %)",
+            holds=len(flat) == len(convergence) if convergence else None,
+            detail=f"lr {design.chosen['extraction_lr']:g} chosen on validation; held-out loss change over "
+            f"the last quarter: {drops}",
+        )
+    ]
+    n_boot = design.n_boot
+    ext = _compare(episodes_ext, "ao", "ft", 0, n_boot)
+    result.append(
+        Precondition(
+            key="b",
+            claim="auxiliary SFT beats SFT on D_ext validation goals (θ_ao vs θ_ft)",
+            holds=_verdict(ext) if ext else None,
+            detail=ext.summary() if ext else "not measured",
+            comparison=ext,
+        )
+    )
+    upper = next(
+        (
+            c
+            for c in comparisons
+            if (c.arm, c.baseline) == ("sft_from_ao", "sft_from_ft") and c.budget == design.primary_budget
+        ),
+        None,
+    )
+    result.append(
+        Precondition(
+            key="c",
+            claim="downstream SFT from θ_ao beats SFT from θ_ft on D_down (something to transfer)",
+            holds=_verdict(upper) if upper else None,
+            detail=upper.summary() if upper else "not run (arms sft_from_ao, sft_from_ft)",
+            comparison=upper,
+        )
+    )
+    merged = _compare(episodes_ext, "meta", "pt", 0, n_boot)
+    worse = merged is not None and merged.ci_high < 0
+    result.append(
+        Precondition(
+            key="d",
+            claim="θ_meta is not worse than θ_pt before downstream training (D_ext validation goals)",
+            holds=None if merged is None else not worse,
+            detail=merged.summary() if merged else "not measured",
+            comparison=merged,
+        )
+    )
+    return result
+
+
+def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -> StudyReport:
+    tests = [
+        ({"arm": arm, "draw": int(d), "seed": int(s), "budget": int(b)}, e)
+        for (arm, d, s, b), e in _parse(inputs, "test")
+    ]
+    if not tests:
+        raise ValueError("a study analysis needs test evaluations (inputs test/<arm>/<draw>/<seed>/<budget>)")
+    episodes = _episodes(workspace, tests)
+    ext = []
+    for (which, d), e in _parse(inputs, "extval"):
+        seed = 0  # one run each: paired by draw
+        ext.append(
+            ({"arm": which, "draw": SHARED_DRAW if which == "pt" else int(d), "seed": seed, "budget": 0}, e)
+        )
+    episodes_ext = _episodes(workspace, ext) if ext else pd.DataFrame(columns=episodes.columns)
+    budgets = sorted(episodes["budget"].unique())
+    comparisons = [
+        c
+        for budget in (design.primary_budget, design.final_budget)
+        for arm, baseline in COMPARED
+        if (c := _compare(episodes, arm, baseline, budget, design.n_boot)) is not None
+    ]
+    curves = {
+        arm: success_curve(episodes, arm, budgets=[int(b) for b in budgets], n_boot=design.n_boot)
+        for arm in design.arms
+        if arm in set(episodes["arm"])
+    }
+    convergence = _convergence(workspace, inputs, design)
+    goals = episodes.groupby("task")["goal"].nunique()
+    final = {e for k, e in tests if k["budget"] == design.final_budget}
+    by_arm: dict[str, list[str]] = {}
+    for scores in read_scores(workspace.api, evaluations=sorted(final)):
+        arm = next(k["arm"] for k, e in tests if e == scores.evaluation_id)
+        by_arm.setdefault(arm, []).append(scores.checkpoint_id)
+    return StudyReport(
+        design=design,
+        goals_per_task=int(goals.min()),
+        tasks=sorted(goals.index),
+        preconditions=_preconditions(workspace, inputs, design, episodes_ext, comparisons, convergence),
+        comparisons=comparisons,
+        curves=curves,
+        selections={name[0]: sel for name, sel in _parse(inputs, "selection")},
+        convergence=convergence,
+        final_checkpoints={arm: sorted(ids) for arm, ids in sorted(by_arm.items())},
+    )
+
+
+def run_analyse_study(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    design = StudyDesign.model_validate(config)
+
+    def produce(key: str) -> str:
+        report = analyse(workspace, inputs, design)
+        record = workspace.api.register_json(
+            report.model_dump(mode="json"),
+            kind=STUDY_KIND,
+            name=step,
+            config={"design": design.model_dump(mode="json"), "cache_key": key},
+            parents=list({a: (a, name.split("/")[0]) for name, a in sorted(inputs.items())}.values()),
+            **provenance(),
+        )
+        return record.id
+
+    return cached_step(workspace, "analyse_study", inputs, config, produce)
+
+
+@pipeline_task("analyse_study")
+def analyse_study_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_analyse_study(workspace_for(home), step, inputs, config)

@@ -1,0 +1,125 @@
+"""A study's report in Markdown: the headline comparisons with their CIs, the preconditions, the design.
+
+Rendered from the `study` artifact (tasks.study_analysis), plus the time per training step of each
+arm, read from its checkpoints' records (timings are never part of the analysed document).
+"""
+
+from __future__ import annotations
+
+import statistics
+
+from tasks.study_analysis import StudyReport
+from tasks.study_statistics import Comparison
+from tasks.workspace import Workspace
+
+HEADLINE = (
+    ("capvector", "sft"),
+    ("capvector", "aux"),
+    ("capvector", "meta_sft"),
+    ("capvector", "null_capvector"),
+)
+NAMES = {
+    "sft": "SFT",
+    "aux": "auxiliary SFT",
+    "meta_sft": "θ_meta without the orthogonal loss",
+    "capvector": "CapVector",
+    "null_capvector": "null vector",
+    "sft_from_ao": "SFT from θ_ao",
+    "sft_from_ft": "SFT from θ_ft",
+}
+VERDICT = {True: "holds", False: "fails", None: "not shown (CI includes 0)"}
+
+
+def load_study_report(workspace: Workspace, report_id: str) -> StudyReport:
+    return StudyReport.model_validate(workspace.api.store.open_json(report_id))
+
+
+def seconds_per_step(workspace: Workspace, report: StudyReport) -> dict[str, float]:
+    """Arm -> median training seconds per step over its runs (from the checkpoints' run summaries)."""
+    out = {}
+    for arm, ids in report.final_checkpoints.items():
+        speeds = [workspace.api.get(i).config["summary"]["steps_per_s"] for i in ids]
+        speeds = [s for s in speeds if s]
+        if speeds:
+            out[arm] = 1.0 / statistics.median(speeds)
+    return out
+
+
+def _cell(c: Comparison | None) -> str:
+    if c is None:
+        return "—"
+    return f"{c.difference:+.1f} [{c.ci_low:+.1f}, {c.ci_high:+.1f}]"
+
+
+def _find(report: StudyReport, arm: str, baseline: str, budget: int) -> Comparison | None:
+    return next(
+        (c for c in report.comparisons if (c.arm, c.baseline, c.budget) == (arm, baseline, budget)), None
+    )
+
+
+def study_markdown(workspace: Workspace, report: StudyReport) -> str:
+    d = report.design
+    primary, final = d.primary_budget, d.final_budget
+    lines = [f"# Study `{d.name}`", ""]
+    lines += [
+        f"Design: {len(d.draws)} γ draw(s) × {len(d.seeds)} training seed(s); {report.goals_per_task} test "
+        f"goals per task × {len(report.tasks)} tasks ({', '.join(report.tasks)}), the same goals for every "
+        f"checkpoint. Primary endpoint (declared in the preset): success after **{primary}** downstream "
+        f"steps; secondary: after {final}. Differences in points, paired by draw, seed and goal, with "
+        f"hierarchical-bootstrap 95 % CIs (tasks.study_statistics).",
+        "",
+        "## Headline",
+        "",
+        f"| comparison | @ {primary} (primary) | @ {final} (final) | MDD @ {primary} |",
+        "|---|---|---|---|",
+    ]
+    for arm, baseline in HEADLINE:
+        p, f = _find(report, arm, baseline, primary), _find(report, arm, baseline, final)
+        mdd = f"{p.mdd:.1f}" if p else "—"
+        lines.append(f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(p)} | {_cell(f)} | {mdd} |")
+    main = _find(report, "capvector", "sft", primary)
+    if main is not None:
+        powered = "meets" if main.mdd <= 5 else "does not meet"
+        lines += [
+            "",
+            f"Minimum detectable difference of CapVector − SFT at the primary endpoint: **{main.mdd:.1f} "
+            f"points** (80 % power, two-sided 5 %); this design {powered} the 5-point bar.",
+        ]
+    lines += ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
+    for p in report.preconditions:
+        lines.append(f"| ({p.key}) | {p.claim} | {VERDICT[p.holds]} | {p.detail} |")
+    lines += ["", "## Other comparisons", "", f"| comparison | @ {primary} | @ {final} |", "|---|---|---|"]
+    for arm, baseline in (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("meta_sft", "sft")):
+        lines.append(
+            f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, primary))} | "
+            f"{_cell(_find(report, arm, baseline, final))} |"
+        )
+    budgets = sorted({p.budget for points in report.curves.values() for p in points})
+    lines += ["", "## Success vs downstream steps (mean % [95 % CI])", ""]
+    lines.append("| arm | " + " | ".join(str(b) for b in budgets) + " | s/step | × SFT |")
+    lines.append("|---|" + "---|" * (len(budgets) + 2))
+    speed = seconds_per_step(workspace, report)
+    for arm, points in report.curves.items():
+        by = {p.budget: p for p in points}
+        cells = [
+            f"{by[b].mean:.1f} [{by[b].ci_low:.1f}, {by[b].ci_high:.1f}]" if b in by else "—" for b in budgets
+        ]
+        sec = speed.get(arm)
+        ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
+        lines.append(
+            f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + f" | {sec:.4f} | {ratio} |"
+            if sec
+            else f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + " | — | — |"
+        )
+    chosen = d.chosen
+    lines += [
+        "",
+        "## Choices (validation goals, tuning seed; each a `selection` artifact)",
+        "",
+        f"extraction lr {chosen['extraction_lr']:g}; auxiliary weight {chosen['aux_weight']:g}; "
+        f"α {chosen['alpha']:g}; λ {chosen['lambda_scale']:g} × ‖∇ action loss‖/‖γ‖.",
+        "",
+    ]
+    for name, sel in report.selections.items():
+        lines.append(f"- {name}: `{sel[:12]}` (`capvector lineage {sel[:12]}`)")
+    return "\n".join(lines) + "\n"
