@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 run: install
-	$(VENV)/bin/capvector run --preset quick
+	$(VENV)/bin/capvector study --preset study-small
 
 test: install
 	$(PY) -m ruff check .

@@ -254,6 +254,8 @@ def load_config(
         raise ValueError(f"preset {path}: expected a mapping of settings, got a {type(data).__name__}")
     if model is PipelineConfig and "study" in data:
         raise ValueError(f"preset {path} is a study: run it with `capvector study --preset {preset}`")
+    if model is not PipelineConfig and "study" not in data:
+        raise ValueError(f"preset {path} has no `study` section: it is not a study (`capvector run` runs it)")
     return model.model_validate(apply_overrides(data, list(overrides or []), model))
 
 

@@ -19,7 +19,15 @@ from artifacts.scores import read_episodes, read_scores
 from tasks.caching import cached_step
 from tasks.held_out_loss import measured_loss
 from tasks.prefect_task import pipeline_task
-from tasks.study_statistics import SHARED_DRAW, Comparison, CurvePoint, paired_difference, success_curve
+from tasks.study_statistics import (
+    SHARED_DRAW,
+    Comparison,
+    CurvePoint,
+    Design,
+    paired_difference,
+    smallest_design,
+    success_curve,
+)
 from tasks.workspace import Workspace, provenance, workspace_for
 
 STUDY_KIND = "study"
@@ -74,6 +82,10 @@ class StudyReport(BaseModel):
     convergence: list[dict[str, Any]]
     final_checkpoints: dict[str, list[str]]
     """Arm -> its runs' final checkpoints (where the rendered report reads time per step)."""
+    designs_for_5_points: dict[str, Design | None]
+    """`arm-baseline` -> the cheapest design whose MDD at the primary endpoint would be ≤ 5 points, sized
+    from this study's variance components (None: none in the searched grid; components this study
+    could not separate count as 0, so it is a lower bound then)."""
 
 
 def _parse(inputs: dict[str, str], kind: str) -> list[tuple[list[str], str]]:
@@ -232,6 +244,11 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         selections={name[0]: sel for name, sel in _parse(inputs, "selection")},
         convergence=convergence,
         final_checkpoints={arm: sorted(ids) for arm, ids in sorted(by_arm.items())},
+        designs_for_5_points={
+            f"{c.arm}-{c.baseline}": smallest_design(c.components, n_tasks=c.n_tasks)
+            for c in comparisons
+            if c.budget == design.primary_budget and c.arm == "capvector"
+        },
     )
 
 

@@ -85,6 +85,14 @@ def study_markdown(workspace: Workspace, report: StudyReport) -> str:
             f"Minimum detectable difference of CapVector − SFT at the primary endpoint: **{main.mdd:.1f} "
             f"points** (80 % power, two-sided 5 %); this design {powered} the 5-point bar.",
         ]
+        needed = report.designs_for_5_points.get("capvector-sft")
+        if main.mdd > 5:
+            lines.append(
+                f"From this study's variance components, an MDD ≤ 5 would take {needed.n_draws} draws × "
+                f"{needed.n_seeds} seeds × {needed.n_goals_per_task} goals per task (MDD {needed.mdd:.1f})."
+                if needed
+                else "No design up to 20 draws × 20 seeds × 300 goals per task reaches an MDD of 5 here."
+            )
     lines += ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
     for p in report.preconditions:
         lines.append(f"| ({p.key}) | {p.claim} | {VERDICT[p.holds]} | {p.detail} |")
