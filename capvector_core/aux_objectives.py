@@ -15,6 +15,15 @@ supplies ``batch["privileged_future"]`` for that horizon.
   VGGT plays in the paper, so the target cannot collapse). ``pooling="mean"`` aligns the mean token;
   ``pooling="token"`` aligns every token with the scene feature plus a fixed sinusoidal embedding of
   its position (the paper's f + E). Loss = 1 − mean cosine.
+- ``spatial_depth`` — a closer Spatial Forcing analogue for ``pixels`` mode: each vision token is
+  aligned with a 3D feature of *its own* image patch rather than with one scene vector. The target of
+  a token is the world xyz its patch sees (dataset field ``patch_xyz``: back-projected from the
+  rendered depth through the camera's pinhole model, median over the patch; recorded by demos with
+  ``DemoConfig(patch_xyz=True)``, see depth_targets.py), standardized per coordinate with dataset
+  statistics and embedded by a fixed random Fourier map (seeded, never trained), plus the token's
+  0.1-scaled sinusoidal position as in ``spatial``'s token mode. Head as in ``spatial``; loss = 1 − mean
+  cosine over the tokens whose patch sees geometry (a patch of sky only has NaN xyz and is skipped).
+  The dataset's patch grid must be the policy's token grid.
 - ``dynamics`` — an MLP on the mean-pooled final backbone state (feature ``tokens``) predicts the
   standardized privileged state ``horizon`` steps ahead in the same episode (clamped at the episode's
   end); loss = MSE.
@@ -164,6 +173,84 @@ class SpatialObjective(AuxObjective):
             pred = self.head(tokens)
             target = target[:, None, :] + self.token_pos
         return 1.0 - F.cosine_similarity(pred, target, dim=-1).mean()
+
+
+@register_objective("spatial_depth")
+class SpatialDepthObjective(AuxObjective):
+    feature_names = ("obs_tokens",)
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        layer: int | None = Field(
+            None, description="hidden layer index (negative from the end); default 3/4 depth"
+        )
+        hidden_dim: int = Field(256, gt=0)
+        feature_dim: int = Field(128, gt=0, description="random Fourier feature size (even)")
+        fourier_scale: float = Field(1.0, gt=0)
+        position_embedding: bool = Field(True, description="add each token's 0.1-scaled sinusoid (SF's E)")
+        seed: int = 0
+
+    def __init__(self, features: Mapping[str, FeatureSpec], params: Params):
+        super().__init__(features, params)
+        if params.feature_dim % 2:
+            raise ValueError(f"spatial_depth feature_dim must be even, got {params.feature_dim}")
+        spec = features["obs_tokens"]
+        n = spec.n_layers
+        default = max(0, math.ceil(0.75 * n) - 1)
+        self.layer = _resolve_layer(
+            default if params.layer is None else params.layer, n, "spatial_depth layer"
+        )
+        self.n_tokens = spec.n_tokens
+        self.head = _mlp(spec.dim, params.hidden_dim, params.feature_dim)
+        gen = torch.Generator().manual_seed(params.seed)
+        self.register_buffer(
+            "fourier", torch.randn(3, params.feature_dim // 2, generator=gen) * params.fourier_scale
+        )
+        position = _sinusoid(spec.n_tokens, params.feature_dim)
+        self.register_buffer(
+            "token_pos", position if params.position_embedding else torch.zeros_like(position)
+        )
+        self.register_buffer("xyz_mean", torch.zeros(3))
+        self.register_buffer("xyz_std", torch.ones(3))
+
+    def required_fields(self) -> list[str]:
+        return ["patch_xyz"]
+
+    def fit(self, tensors: Mapping[str, torch.Tensor]) -> None:
+        """Check the patch grid against the policy's tokens; per-coordinate statistics of the points."""
+        patches = tensors["patch_xyz"]
+        if patches.ndim != 3 or patches.shape[2] != 3 or patches.shape[1] != self.n_tokens:
+            raise ValueError(
+                f"auxiliary objective 'spatial_depth' needs patch_xyz with one point per vision token, "
+                f"(N, {self.n_tokens}, 3); the dataset has {tuple(patches.shape)}: collect the demos with "
+                f"patch_grid = the policy's token grid, image_size / 2**len(stem_channels) "
+                f"({math.isqrt(self.n_tokens)} here)"
+            )
+        points = patches.reshape(-1, 3).double()
+        points = points[torch.isfinite(points).all(1)]
+        if not len(points):
+            raise ValueError("auxiliary objective 'spatial_depth': no patch of the dataset sees any geometry")
+        self.xyz_mean.copy_(points.mean(0).float())
+        self.xyz_std.copy_(points.std(0, unbiased=False).clamp_min(1e-2).float())
+
+    def target(self, patch_xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, T, feature_dim) targets and the (B, T) mask of patches that see geometry."""
+        valid = torch.isfinite(patch_xyz).all(-1)
+        standard = (patch_xyz - self.xyz_mean) / self.xyz_std
+        z = torch.where(valid[..., None], standard, torch.zeros_like(standard)) @ self.fourier
+        return torch.cat([z.sin(), z.cos()], dim=-1) + self.token_pos, valid
+
+    def forward(self, features: Mapping, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        tokens = features["obs_tokens"][self.layer]
+        patch_xyz = batch["patch_xyz"]
+        if patch_xyz.shape[:2] != tokens.shape[:2]:
+            raise ValueError(
+                f"patch_xyz {tuple(patch_xyz.shape)} does not match the vision tokens {tuple(tokens.shape)}"
+            )
+        target, valid = self.target(patch_xyz)
+        cosine = F.cosine_similarity(self.head(tokens), target, dim=-1)
+        mask = valid.to(cosine.dtype)
+        return 1.0 - (cosine * mask).sum() / mask.sum().clamp_min(1.0)
 
 
 def _sinusoid(n: int, dim: int) -> torch.Tensor:

@@ -20,11 +20,21 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from multiprocessing import util as mp_util
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 from safetensors.torch import load_file, save_file
 
 from capvector_core.envs import (
@@ -53,7 +63,14 @@ Progress = Callable[[int, int], None]
 
 
 class DemoConfig(BaseModel):
-    """What to collect. `workers` changes speed only, never the data or its hash."""
+    """What to collect. `workers` changes speed only, never the data or its hash.
+
+    `patch_xyz` (pixels mode) also records, per step, the world point each cell of a `patch_grid` ×
+    `patch_grid` split of the image sees (field `patch_xyz`, float32 (N, patch_grid², 3), NaN where a
+    cell sees no geometry; from a depth render, see depth_targets.py): the `spatial_depth` objective's
+    targets. `patch_grid` must be the policy's token grid, image_size / 2**len(stem_channels). Both
+    are left out of the config's dump while `patch_xyz` is off, so other configs dump as before.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -65,6 +82,8 @@ class DemoConfig(BaseModel):
     horizon: int = Field(500, ge=1, le=500)
     seed_offset: int = Field(0, ge=0)
     workers: int = Field(2, ge=1)
+    patch_xyz: bool = False
+    patch_grid: int = Field(4, ge=1, description="patches per image side for patch_xyz")
 
     @field_validator("tasks")
     @classmethod
@@ -80,8 +99,26 @@ class DemoConfig(BaseModel):
                 f"training seeds up to {TRAIN_SEED_BASE + last}, beyond the training range "
                 f"[{TRAIN_SEED_BASE}, {TRAIN_SEED_BASE + TRAIN_SEED_SPAN})"
             )
-        EnvConfig(task=self.tasks[0], camera=self.camera)  # validates the camera name
+        self.env_config(self.tasks[0])  # validates the camera name and the patch grid
         return self
+
+    @model_serializer(mode="wrap")
+    def _omit_patch_fields_when_off(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        data = handler(self)
+        if not self.patch_xyz:
+            data.pop("patch_xyz", None)
+            data.pop("patch_grid", None)
+        return data
+
+    def env_config(self, task: str) -> EnvConfig:
+        return EnvConfig(
+            task=task,
+            obs_mode=self.obs_mode,
+            camera=self.camera,
+            image_size=self.image_size,
+            horizon=self.horizon,
+            patch_grid=self.patch_grid if self.patch_xyz else None,
+        )
 
     @property
     def n_units(self) -> int:
@@ -206,6 +243,15 @@ def _check_tensors(tensors: dict[str, torch.Tensor], meta: DatasetMeta) -> None:
     missing = [name for name in required if name not in tensors]
     if missing:
         raise ValueError(f"demo dataset lacks required field(s) {missing}; it has {sorted(tensors)}")
+    if "patch_xyz" in tensors:
+        patch = tensors["patch_xyz"]
+        n_patches = patch.shape[1] if patch.ndim == 3 else 0
+        if patch.dtype != torch.float32 or patch.ndim != 3 or patch.shape[2] != 3 or not n_patches:
+            raise ValueError(
+                f"patch_xyz must be float32 (N, patches, 3), got {patch.dtype} {tuple(patch.shape)}"
+            )
+        if math.isqrt(n_patches) ** 2 != n_patches:
+            raise ValueError(f"patch_xyz has {n_patches} patches per image, not a square grid")
     lengths = {key: int(t.shape[0]) for key, t in tensors.items()}
     if len(set(lengths.values())) != 1:
         raise ValueError(f"demo dataset fields have different numbers of steps: {lengths}")
@@ -278,13 +324,7 @@ class _UnitResult:
 def _units(config: DemoConfig) -> list[_Unit]:
     units = []
     for task_index, task in enumerate(config.tasks):
-        env = EnvConfig(
-            task=task,
-            obs_mode=config.obs_mode,
-            camera=config.camera,
-            image_size=config.image_size,
-            horizon=config.horizon,
-        )
+        env = config.env_config(task)
         for u in range(config.n_units):
             needed = min(UNIT_EPISODES, config.episodes_per_task - u * UNIT_EPISODES)
             first_seed = TRAIN_SEED_BASE + config.seed_offset + u * UNIT_SEEDS

@@ -26,8 +26,9 @@ import numpy as np
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 from metaworld.policies import ENV_POLICY_MAP
 from metaworld.policies.policy import Policy
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from capvector_core.depth_targets import PinholeCamera, patch_xyz
 from capvector_core.metaworld_tasks import INSTRUCTIONS, validate_task_names
 
 CAMERAS = ("topview", "corner", "corner2", "corner3", "corner4", "behindGripper", "gripperPOV")
@@ -55,6 +56,12 @@ class EnvConfig(BaseModel):
     image_size: int = Field(64, ge=16, le=256)
     horizon: int = Field(MAX_HORIZON, ge=1, le=MAX_HORIZON)
     seed: int = Field(0, ge=0)
+    patch_grid: int | None = Field(
+        None,
+        ge=1,
+        description="pixels mode: also observe 'patch_xyz', the world point each cell of a "
+        "patch_grid x patch_grid split of the image sees (from a depth render; training targets only)",
+    )
 
     @field_validator("task")
     @classmethod
@@ -69,6 +76,17 @@ class EnvConfig(BaseModel):
             raise ValueError(f"unknown camera {camera!r}; Meta-World cameras are {', '.join(CAMERAS)}")
         return camera
 
+    @model_validator(mode="after")
+    def _patch_grid_fits(self) -> EnvConfig:
+        if self.patch_grid is not None:
+            if self.obs_mode != "pixels":
+                raise ValueError(
+                    f"patch_grid needs obs_mode 'pixels' (patches are image patches), got {self.obs_mode!r}"
+                )
+            if self.image_size % self.patch_grid:
+                raise ValueError(f"patch_grid ({self.patch_grid}) must divide image_size ({self.image_size})")
+        return self
+
 
 class FastRenderer:
     """Offscreen RGB renderer at ~10x metaworld's default speed that returns upright images.
@@ -77,6 +95,7 @@ class FastRenderer:
     policy needs. Meta-World's corner cameras look at the table with their up-axis pointing down, so
     their raw images are rotated by 180 degrees; we rotate back (a vertical flip alone would mirror
     the scene). The check uses the camera's current orientation, so tracking cameras work too.
+    Depth is rendered only by `render_rgbd` (a second, unlit pass); `render` is unchanged by it.
     """
 
     def __init__(self, model: mujoco.MjModel, camera: str, size: int):
@@ -88,13 +107,39 @@ class FastRenderer:
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self._camera = camera
         self._camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        self._size = size
+        self._model = model
+        self.far = float(model.vis.map.zfar * model.stat.extent)  # metres; depth of pixels seeing nothing
 
     def render(self, data: mujoco.MjData) -> np.ndarray:
         """uint8 (H, W, 3) upright image of the current simulator state."""
         self._renderer.update_scene(data, camera=self._camera)
         image = self._renderer.render()
-        camera_up_z = data.cam_xmat[self._camera_id][7]  # world z of the camera's y (up) axis
-        return np.ascontiguousarray(image[::-1, ::-1]) if camera_up_z < 0 else image
+        return np.ascontiguousarray(image[::-1, ::-1]) if self._upside_down(data) else image
+
+    def render_rgbd(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, PinholeCamera]:
+        """The upright image, its depth (float32 (H, W), metres along the optical axis; `far` where no
+        geometry is seen) and the pinhole camera of that upright view, from one scene update."""
+        renderer = self._renderer
+        renderer.update_scene(data, camera=self._camera)
+        image = renderer.render()
+        renderer.enable_depth_rendering()
+        try:
+            depth = renderer.render()
+        finally:
+            renderer.disable_depth_rendering()
+        model, cid = self._model, self._camera_id
+        if model.cam_orthographic[cid] or np.any(model.cam_sensorsize[cid]):
+            raise ValueError(f"camera {self._camera!r} is not a fovy pinhole camera; depth targets need one")
+        rotation = data.cam_xmat[cid].reshape(3, 3).copy()
+        if self._upside_down(data):
+            image, depth = np.ascontiguousarray(image[::-1, ::-1]), np.ascontiguousarray(depth[::-1, ::-1])
+            rotation[:, :2] *= -1  # the turned image's right and up are the camera's left and down
+        camera = PinholeCamera(data.cam_xpos[cid].copy(), rotation, float(model.cam_fovy[cid]), self._size)
+        return image, depth, camera
+
+    def _upside_down(self, data: mujoco.MjData) -> bool:
+        return data.cam_xmat[self._camera_id][7] < 0  # world z of the camera's y (up) axis
 
     def close(self) -> None:
         self._renderer.close()
@@ -212,7 +257,9 @@ class MetaWorldEnv:
     Observation dict: "state" f32 (39,) Meta-World's observation; "proprio" f32 (4,) hand xyz and
     gripper opening (state[0:4]); "privileged" f32 (9,) object xyz, goal xyz, gripper (tool centre
     point) xyz read from the simulator (unclipped, unlike the state vector); "image" uint8 (H, W, 3)
-    only in pixels mode. Built by a `SharedModel`, it must be used through these methods only (`.env`
+    only in pixels mode; "patch_xyz" f32 (patch_grid², 3) only with `config.patch_grid`: the world
+    point each image patch sees (row-major, NaN for a patch seeing no geometry; depth_targets.py).
+    Built by a `SharedModel`, it must be used through these methods only (`.env`
     may hold another env's episode values in its model).
     """
 
@@ -282,12 +329,19 @@ class MetaWorldEnv:
 
     def render(self) -> np.ndarray:
         """Upright uint8 (S, S, 3) image from the configured camera (works in both modes, e.g. videos)."""
+        return self._fast_renderer().render(self.env.data)
+
+    def render_rgbd(self) -> tuple[np.ndarray, np.ndarray, PinholeCamera]:
+        """`render` plus the depth (metres) and the pinhole camera of the upright view (see FastRenderer)."""
+        return self._fast_renderer().render_rgbd(self.env.data)
+
+    def _fast_renderer(self) -> FastRenderer:
         self._activate()
         if self._renderer is None and self._share is not None:
             self._renderer = self._share.renderer()
         elif self._renderer is None:
             self._renderer = FastRenderer(self.env.model, self.config.camera, self.config.image_size)
-        return self._renderer.render(self.env.data)
+        return self._renderer
 
     def _activate(self) -> None:
         if self._share is not None:
@@ -296,7 +350,10 @@ class MetaWorldEnv:
     def _observation(self, state: np.ndarray) -> dict[str, np.ndarray]:
         state = state.astype(np.float32)
         obs = {"state": state, "proprio": state[:PROPRIO_DIM].copy(), "privileged": self.privileged()}
-        if self.config.obs_mode == "pixels":
+        if self.config.patch_grid is not None:
+            obs["image"], depth, camera = self.render_rgbd()
+            obs["patch_xyz"] = patch_xyz(depth, camera, self.config.patch_grid, self._renderer.far)
+        elif self.config.obs_mode == "pixels":
             obs["image"] = self.render()
         return obs
 
