@@ -169,6 +169,8 @@ class PipelineConfig(BaseModel):
             "extraction": self.data.episodes_extraction,
             "downstream": self.data.episodes_downstream,
         }[split]
+        # Per-patch 3D targets where an objective reads them: extraction (θ_ao) and downstream (aux arm).
+        depth = self.aux.name == "spatial_depth" and split != "pretrain"
         return DemoConfig(
             tasks=getattr(self.splits, split),
             episodes_per_task=episodes,
@@ -177,6 +179,7 @@ class PipelineConfig(BaseModel):
             image_size=self.data.image_size,
             horizon=self.data.horizon,
             workers=self.data.workers,
+            **({"patch_xyz": True, "patch_grid": self.policy.grid_size} if depth else {}),
         )
 
     def pretrain_step(self) -> TrainStepConfig:

@@ -235,3 +235,21 @@ def test_resume_refuses_a_different_config(tmp_path):
     assert again.resumed_from_step == 10  # finished run: nothing left to do, log_every may differ
     with pytest.raises(ValueError, match=r"differs in \['lr'\]"):
         train(policy, make_dataset(), quick(steps=10, lr=1e-2), tmp_path)
+
+
+def test_snapshots_are_the_weights_at_their_step_and_bad_ones_refused(tmp_path):
+    model = build_policy(L1ChunkConfig(obs_mode="state", d_model=32, n_layers=1, n_heads=2, chunk_size=4))
+    config = quick(steps=12, checkpoint_every=4, keep_checkpoints=10, snapshot_steps=[4, 8])
+    result = train(model, make_dataset(), config, tmp_path / "run")
+    assert sorted(result.snapshots) == [4, 8]
+    for step, path in result.snapshots.items():
+        kept = load_policy(path).state_dict()
+        at_checkpoint = load_policy(
+            tmp_path / "run" / "checkpoints" / f"step_{step:08d}" / "policy.safetensors"
+        )
+        assert all(torch.equal(v, at_checkpoint.state_dict()[k]) for k, v in kept.items())
+    early, later = (load_policy(result.snapshots[s]).state_dict() for s in (4, 8))
+    assert any(not torch.equal(early[k], later[k]) for k in early)  # two budgets, two different policies
+    for bad in ([12], [0], [4, 4]):
+        with pytest.raises(ValueError, match="snapshot_steps"):
+            quick(steps=12, snapshot_steps=bad)

@@ -421,3 +421,24 @@ extract_cli(ws, {str(p["ao"])!r}, {str(p["ft"])!r}, Path({str(out)!r}), None, No
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == -9, proc.stderr
     assert sorted(folder.iterdir()) == before
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_null_vector_keeps_each_tensors_norm_in_a_random_direction(tmp_path, dtype):
+    gamma = _write(tmp_path, "gamma", _random_ckpt(dtype, 0), sharded=False)
+    first = vector_ops.null_vector(gamma, tmp_path / "null0.safetensors", seed=0)
+    again = vector_ops.null_vector(gamma, tmp_path / "null0b.safetensors", seed=0)
+    other = vector_ops.null_vector(gamma, tmp_path / "null1.safetensors", seed=1)
+    g, n0, n0b, n1 = (_load(p) for p in (gamma, first, again, other))
+    assert set(n0) == set(g)
+    tolerance = 1e-5 if dtype == torch.float32 else 1e-2  # bf16 rounding of each element
+    for name, t in g.items():
+        if not t.is_floating_point():
+            assert torch.equal(n0[name], t)  # non-float tensors are carried as they are
+            continue
+        a, b = t.double().flatten(), n0[name].double().flatten()
+        assert abs(b.norm() - a.norm()) <= tolerance * a.norm()
+        assert torch.equal(n0[name], n0b[name])  # the seed decides it
+        if a.numel() > 1:
+            assert not torch.equal(n0[name], n1[name])
+            assert abs(torch.nn.functional.cosine_similarity(a, b, dim=0)) < 0.5  # not γ's direction

@@ -1,0 +1,147 @@
+"""The `study` flow end to end on the tiny preset, through the real CLI: selections are artifacts with
+their validation evaluations as parents, every compared run uses them and is tested on the same goals at
+every budget, the controls are what they claim, the report holds preconditions and comparisons, and a
+second run is answered by the cache."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from safetensors.numpy import load_file
+
+from capvector_core.demos import EVAL_SEED_BASE, UNIT_SEEDS, VALIDATION_SEED_BASE
+from flows.study_config import load_study
+from tasks.study_analysis import StudyReport
+from tasks.workspace import Workspace
+from tests.conftest import run_cli
+
+
+@pytest.fixture(scope="module")
+def study_home(tmp_path_factory) -> tuple[Path, dict]:
+    home = tmp_path_factory.mktemp("study-home")
+    proc = run_cli("study", "--preset", "study-smoke", "--json", home=home)
+    return home, json.loads(proc.stdout)
+
+
+def _parents(ws: Workspace, artifact_id: str) -> list[tuple[str, str]]:
+    rows = ws.api.query(
+        "SELECT parent, role FROM edges WHERE child = $c ORDER BY role, parent", {"c": artifact_id}
+    )
+    return list(rows.itertuples(index=False, name=None))
+
+
+def test_selections_come_from_validation_goals_and_are_parents_of_what_uses_them(study_home):
+    home, ids = study_home
+    ws = Workspace(home)
+    assert set(ids["selections"]) == {
+        "selection/extraction lr",
+        "selection/auxiliary weight",
+        "selection/α and λ",
+    }
+    report = StudyReport.model_validate(ws.api.store.open_json(ids["report"]))
+    for selection in ids["selections"].values():
+        evaluations = [p for p, role in _parents(ws, selection) if role == "validation"]
+        assert len(evaluations) >= 2
+        for e in evaluations:
+            seeds = ws.api.get(e).config["eval"]
+            assert VALIDATION_SEED_BASE <= seeds["seed_base"] < EVAL_SEED_BASE  # never a test goal
+    grid = ids["selections"]["selection/α and λ"]
+    for arm in ("capvector", "null_capvector", "meta_sft"):
+        for checkpoint in report.final_checkpoints[arm]:
+            assert (grid, "selected_by") in _parents(ws, checkpoint), arm
+    aux = ids["selections"]["selection/auxiliary weight"]
+    assert all((aux, "selected_by") in _parents(ws, c) for c in report.final_checkpoints["aux"])
+    assert not any(
+        role == "selected_by" for c in report.final_checkpoints["sft"] for _, role in _parents(ws, c)
+    )
+
+
+def test_every_run_is_tested_on_the_same_goals_at_every_budget(study_home):
+    home, ids = study_home
+    ws = Workspace(home)
+    report = StudyReport.model_validate(ws.api.store.open_json(ids["report"]))
+    config = load_study("study-smoke")
+    tests = [p for p, role in _parents(ws, ids["report"]) if role == "test"]
+    draws, seeds = len(config.study.draws), len(config.seeds)
+    runs = 2 * seeds + 5 * draws * seeds  # sft, aux shared; five arms per draw
+    assert len(tests) == runs * len(config.curve_budgets)
+    assert len({ws.api.get(t).config["protocol"]["seeds"].__repr__() for t in tests}) == 1
+    for arm, points in report.curves.items():
+        assert [p.budget for p in points] == config.curve_budgets, arm
+    kept = ws.api.get(report.final_checkpoints["capvector"][0]).config
+    assert set(kept["snapshots"]) == {str(b) for b in config.curve_budgets[:-1]}
+    summary = kept["summary"]
+    assert summary["lambda_scale"] > 0
+    chosen = report.design.chosen["lambda_scale"]
+    assert summary["orthogonal_lambda"] == pytest.approx(chosen * summary["lambda_scale"])
+
+
+def test_the_null_vector_has_gammas_norms_and_is_merged_and_regularized_like_it(study_home):
+    home, ids = study_home
+    ws = Workspace(home)
+    report = StudyReport.model_validate(ws.api.store.open_json(ids["report"]))
+    checkpoint = report.final_checkpoints["null_capvector"][0]
+    parents = dict((role, p) for p, role in _parents(ws, checkpoint))
+    null = parents["regularized_by"]
+    (gamma,) = [p for p, role in _parents(ws, null) if role == "norms_from"]
+    assert ws.api.get(gamma).kind == "vector" and ws.api.get(null).kind == "vector"
+    a, b = load_file(str(ws.path(gamma))), load_file(str(ws.path(null)))
+    for name in a:
+        np.testing.assert_allclose(np.linalg.norm(b[name]), np.linalg.norm(a[name]), rtol=1e-4)
+    merged = dict((role, p) for p, role in _parents(ws, parents["init"]))
+    assert merged["vector"] == null  # θ_null = θ_pt + α·γ_null
+
+
+def test_the_report_states_preconditions_comparisons_and_the_design(study_home):
+    home, ids = study_home
+    ws = Workspace(home)
+    report = StudyReport.model_validate(ws.api.store.open_json(ids["report"]))
+    assert [p.key for p in report.preconditions] == ["a", "b", "c", "d"]
+    assert len(report.convergence) == 2 * len(report.design.draws)  # θ_ft and θ_ao per draw
+    pairs = {(c.arm, c.baseline, c.budget) for c in report.comparisons}
+    for baseline in ("sft", "aux", "meta_sft", "null_capvector"):
+        for budget in (report.design.primary_budget, report.design.final_budget):
+            assert ("capvector", baseline, budget) in pairs
+    for c in report.comparisons:
+        assert c.ci_low <= c.difference <= c.ci_high
+        assert c.n_goals == report.goals_per_task * len(report.tasks)
+
+
+def test_a_second_run_is_answered_by_the_cache(study_home):
+    home, ids = study_home
+    again = json.loads(run_cli("study", "--preset", "study-smoke", "--json", home=home).stdout)
+    assert again["report"] == ids["report"]
+    log = max((home / "logs").glob("study-*.log"), key=lambda p: p.stat().st_mtime)
+    lines = [
+        line
+        for line in log.read_text().splitlines()
+        if "] " in line and line.rstrip().endswith(("done", "cached"))
+    ]
+    assert lines and all(line.endswith("cached") for line in lines)
+
+
+def test_study_presets_are_checked_before_anything_runs(tmp_path):
+    with pytest.raises(ValueError, match="aux_weights"):
+        load_study("study-smoke", ["study.aux_weights=[0.5]"])
+    with pytest.raises(ValueError, match="budgets"):
+        load_study("study-smoke", ["study.primary_budget=16"])
+    with pytest.raises(ValueError, match="tuning_seed"):
+        load_study("study-smoke", ["study.tuning_seed=0"])
+    with pytest.raises(ValueError, match="not a study"):
+        load_study("smoke")
+    proc = run_cli("run", "--preset", "study-smoke", home=tmp_path / "home", check=False)
+    assert proc.returncode != 0 and "capvector study --preset study-smoke" in proc.stderr
+
+
+def test_the_pixels_study_records_patch_targets_where_its_objective_reads_them():
+    config = load_study("study-pixels")
+    assert config.aux.name == "spatial_depth"
+    assert not config.demo_config("pretrain").patch_xyz
+    for split in ("extraction", "downstream"):
+        demo = config.demo_config(split)
+        assert demo.patch_xyz and demo.patch_grid == config.policy.grid_size
+    assert config.heldout_demo_config().seed_offset >= config.demo_config("extraction").n_units * UNIT_SEEDS
+    assert config.evaluation.episodes_per_task * len(config.splits.downstream) >= 250
