@@ -2,9 +2,9 @@
 
     demos -> θ_pt
     -> extraction lr chosen on D_ext validation goals          (selection artifact)
+    -> auxiliary weight chosen (downstream, validation goals)  (selection artifact; θ_ao uses it too)
+    -> a tuning γ (tuning seed) -> α × λ chosen for CapVector on it (validation goals) (selection artifact)
     -> per γ draw d: θ_ft^d, θ_ao^d (chosen lr) -> γ^d, γ_null^d (random, γ^d's per-tensor norms)
-    -> auxiliary weight chosen (downstream, validation goals)  (selection artifact)
-    -> α × λ chosen for CapVector on draw 0 (validation goals) (selection artifact)
     -> per draw: θ_meta^d = θ_pt + α·γ^d, θ_null^d = θ_pt + α·γ_null^d
     -> arms × draws × seeds, each kept at every curve budget, evaluated on the same test goals
     -> preconditions, paired comparisons with hierarchical-bootstrap CIs, MDD -> `study` artifact
@@ -107,17 +107,15 @@ def _run_study(study: _Study) -> dict[str, Any]:
 
     # Everything that needs no choice yet: the lr grid, the auxiliary grid, SFT's runs.
     extraction_inputs = {"data": data["extraction"], "init": pretrained}
-    lr_cells = []
+    lr_runs, lr_cells = {}, []
     for lr in s.extraction_lrs:
-        run = submit(
-            train_task,
-            f"tune extraction θ_ft lr={lr}",
-            extraction_inputs,
-            cfg.extraction_run(False, tune, lr),
+        step = f"tune extraction θ_ft lr={lr}"
+        lr_runs[lr] = submit(train_task, step, extraction_inputs, cfg.extraction_run(False, tune, lr))
+        validation = submit(
+            evaluate_task, f"validate θ_ft lr={lr}", {"checkpoint": lr_runs[lr]}, validation_ext
         )
-        lr_cells.append(
-            ({"lr": lr}, submit(evaluate_task, f"validate θ_ft lr={lr}", {"checkpoint": run}, validation_ext))
-        )
+        lr_cells.append(({"lr": lr}, validation))
+    tuned_aux = "aux" in s.arms
     aux_runs = [
         (
             w,
@@ -131,28 +129,91 @@ def _run_study(study: _Study) -> dict[str, Any]:
                 step_config=cfg.study_downstream("aux", tune, aux_weight=w),
             ),
         )
-        for w in s.aux_weights
+        for w in (s.aux_weights if tuned_aux else [])
     ]
     runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
     shared = -1
-    if "sft" in s.arms:
-        for seed in cfg.seeds:
-            runs["sft", shared, seed] = submit_arm(
-                study.steps, cfg, base_stage, "sft", seed, step_config=cfg.study_downstream("sft", seed)
-            )
+    for seed in cfg.seeds:
+        runs["sft", shared, seed] = submit_arm(
+            study.steps, cfg, base_stage, "sft", seed, step_config=cfg.study_downstream("sft", seed)
+        )
     pt_validation = submit(
         evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, validation_ext
     )
     study.analysis_inputs[label("extval", "pt", shared)] = pt_validation
 
-    # (a) the extraction lr, then every draw's θ_ft, θ_ao, γ and null vector.
+    # Choices on validation goals at the selection budget.
+    budget = cfg.select_budget
+
+    def validate(values: dict[str, Any], run: Any, what: str) -> tuple[dict[str, Any], Any]:
+        step = f"validate {what} @ {budget}"
+        return values, submit(
+            evaluate_task, step, {"checkpoint": study.at_budget(run, budget)}, validation_down
+        )
+
+    # (a) the extraction lr; the auxiliary weight (θ_ao is trained with the weight the aux arm uses).
     lr_selection = study.select("extraction lr", lr_cells, {"run": "θ_ft", "seed": tune})
     lr = chosen(study.workspace, lr_selection)["lr"]
+    extraction_choices = {"selection": lr_selection}
+    aux_weight = cfg.aux.weight
+    if tuned_aux:
+        aux_cells = [validate({"aux_weight": w}, run, f"aux weight={w}") for w, run in aux_runs]
+        aux_selection = study.select("auxiliary weight", aux_cells, {"seed": tune, "budget": budget})
+        aux_weight = chosen(study.workspace, aux_selection)["aux_weight"]
+        extraction_choices["selection aux"] = aux_selection
+        for seed in cfg.seeds:
+            runs["aux", shared, seed] = submit_arm(
+                study.steps,
+                cfg,
+                base_stage,
+                "aux",
+                seed,
+                selection=aux_selection,
+                step_config=cfg.study_downstream("aux", seed, aux_weight=aux_weight),
+            )
+
+    # The tuning γ (tuning seed, never a compared draw) and the α × λ grid on it.
+    inputs = {**extraction_inputs, **extraction_choices}
+    tuning_ao = submit(
+        train_task, "tune extraction θ_ao", inputs, cfg.extraction_run(True, tune, lr, aux_weight)
+    )
+    tuning_stage = {
+        **base_stage,
+        "vector": submit(
+            extract_task,
+            "tuning capability vector γ",
+            {"minuend": tuning_ao, "subtrahend": lr_runs[lr], "base": pretrained},
+            cfg.vector,
+        ),
+    }
+    grid_runs = []
+    for alpha in s.alphas:
+        meta = submit(
+            merge_task,
+            f"tune merge θ_meta α={alpha}",
+            {"base": pretrained, "vector": tuning_stage["vector"]},
+            cfg.merge_config(alpha),
+        )
+        for scale in s.lambda_scales:
+            run = submit_arm(
+                study.steps,
+                cfg,
+                tuning_stage,
+                "capvector",
+                tune,
+                meta=meta,
+                label=f"tune capvector α={alpha} λ={scale}",
+                step_config=cfg.study_downstream("capvector", tune, lambda_scale=scale),
+            )
+            grid_runs.append(({"alpha": alpha, "lambda_scale": scale}, run))
+
+    # Every draw's θ_ft, θ_ao, γ and null vector (while the grid trains).
     draws: dict[int, dict[str, Any]] = {}
     for d in s.draws:
-        inputs = {**extraction_inputs, "selection": lr_selection}
         ft = submit(train_task, f"draw {d} standard SFT θ_ft", inputs, cfg.extraction_run(False, d, lr))
-        ao = submit(train_task, f"draw {d} auxiliary SFT θ_ao", inputs, cfg.extraction_run(True, d, lr))
+        ao = submit(
+            train_task, f"draw {d} auxiliary SFT θ_ao", inputs, cfg.extraction_run(True, d, lr, aux_weight)
+        )
         vector = submit(
             extract_task,
             f"draw {d} capability vector γ",
@@ -172,58 +233,11 @@ def _run_study(study: _Study) -> dict[str, Any]:
                         study.steps, cfg, draws[d], arm, seed, step_config=cfg.study_downstream(arm, seed)
                     )
 
-    # The α × λ grid on draw 0 (tuning seed).
-    first = draws[s.draws[0]]
-    grid_runs = []
-    for alpha in s.alphas:
-        meta = submit(
-            merge_task,
-            f"tune merge θ_meta α={alpha}",
-            {"base": pretrained, "vector": first["vector"]},
-            cfg.merge_config(alpha),
-        )
-        for scale in s.lambda_scales:
-            run = submit_arm(
-                study.steps,
-                cfg,
-                first,
-                "capvector",
-                tune,
-                meta=meta,
-                label=f"tune capvector α={alpha} λ={scale}",
-                step_config=cfg.study_downstream("capvector", tune, lambda_scale=scale),
-            )
-            grid_runs.append(({"alpha": alpha, "lambda_scale": scale}, run))
-
-    # Choices on validation goals at the selection budget.
-    budget = cfg.select_budget
-
-    def validate(values: dict[str, Any], run: Any, what: str) -> tuple[dict[str, Any], Any]:
-        step = f"validate {what} @ {budget}"
-        return values, submit(
-            evaluate_task, step, {"checkpoint": study.at_budget(run, budget)}, validation_down
-        )
-
-    aux_cells = [validate({"aux_weight": w}, run, f"aux weight={w}") for w, run in aux_runs]
     grid_cells = [validate(v, run, f"capvector α={v['alpha']} λ={v['lambda_scale']}") for v, run in grid_runs]
-    context = {"seed": tune, "budget": budget, "draw": s.draws[0]}
-    aux_selection = study.select("auxiliary weight", aux_cells, context)
-    grid_selection = study.select("α and λ", grid_cells, context)
-    aux_weight = chosen(study.workspace, aux_selection)["aux_weight"]
+    grid_selection = study.select("α and λ", grid_cells, {"seed": tune, "budget": budget})
     best = chosen(study.workspace, grid_selection)
     alpha, scale = best["alpha"], best["lambda_scale"]
 
-    if "aux" in s.arms:
-        for seed in cfg.seeds:
-            runs["aux", shared, seed] = submit_arm(
-                study.steps,
-                cfg,
-                base_stage,
-                "aux",
-                seed,
-                selection=aux_selection,
-                step_config=cfg.study_downstream("aux", seed, aux_weight=aux_weight),
-            )
     merge = cfg.merge_config(alpha)
     for d, stage in draws.items():
         stage["meta"] = submit(
@@ -264,11 +278,10 @@ def _run_study(study: _Study) -> dict[str, Any]:
             study.analysis_inputs[label("test", arm, d, seed, b)] = submit(
                 evaluate_task, step, {"checkpoint": checkpoint}, test
             )
-    quarter = cfg.extraction_snapshots[-1]
     for d, stage in draws.items():
         for which in ("standard", "auxiliary"):
             kept = snapshots_of(study.workspace, resolve(stage[which]))
-            for b in (quarter, cfg.extraction.steps):
+            for b in kept:  # half, three quarters, the end
                 study.analysis_inputs[label("loss", which, d, b)] = submit(
                     held_out_loss_task,
                     f"held-out loss draw {d} {which} @ {b}",
@@ -286,8 +299,15 @@ def _run_study(study: _Study) -> dict[str, Any]:
         "final_budget": cfg.downstream.steps,
         "extraction_steps": cfg.extraction.steps,
         "flat_tolerance": s.flat_tolerance,
+        "non_inferiority_margin": s.non_inferiority_margin,
         "n_boot": s.n_boot,
         "chosen": {"extraction_lr": lr, "aux_weight": aux_weight, "alpha": alpha, "lambda_scale": scale},
+        "grids": {
+            "extraction_lr": list(s.extraction_lrs),
+            "aux_weight": list(s.aux_weights) if tuned_aux else [aux_weight],
+            "alpha": list(s.alphas),
+            "lambda_scale": list(s.lambda_scales),
+        },
     }
     report = resolve(submit(analyse_study_task, f"analyse study {cfg.name}", inputs, design))
     return {"report": report, "selections": {k: v for k, v in inputs.items() if k.startswith("selection")}}

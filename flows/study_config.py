@@ -42,7 +42,9 @@ class StudySettings(BaseModel):
     heldout_episodes: int = Field(5, ge=1)
     """Held-out D_ext demonstrations per task, for the convergence check."""
     flat_tolerance: float = Field(0.05, gt=0, lt=1)
-    """Converged: held-out action loss fell by less than this fraction over the last quarter."""
+    """Converged: held-out action loss moved by less than this fraction over the second half."""
+    non_inferiority_margin: float = Field(5.0, gt=0)
+    """Points: θ_meta is "not worse" than θ_pt when the CI's low end is above −margin."""
     alphas: list[float] = Field(min_length=1)
     lambda_scales: list[float] = Field(min_length=1)
     """λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (tasks.training: orthogonal.scale)."""
@@ -89,6 +91,11 @@ class StudyConfig(PipelineConfig):
                 f"study budgets {bad} must lie strictly between 0 and downstream.steps ({steps}), "
                 "which is the final budget"
             )
+        if self.extraction.steps < 4:
+            raise ValueError(
+                f"extraction.steps ({self.extraction.steps}) must be at least 4: the convergence check "
+                "reads the held-out loss at half and three quarters of the run"
+            )
         if self.study.tuning_seed in self.seeds or self.study.tuning_seed in self.study.draws:
             raise ValueError(f"study.tuning_seed {self.study.tuning_seed} is also a compared seed or draw")
         return self
@@ -119,8 +126,18 @@ class StudyConfig(PipelineConfig):
             }
         )
 
-    def extraction_run(self, auxiliary: bool, seed: int, lr: float) -> TrainStepConfig:
+    def extraction_run(
+        self, auxiliary: bool, seed: int, lr: float, aux_weight: float | None = None
+    ) -> TrainStepConfig:
         step = self.extraction_step(auxiliary)
+        if auxiliary and aux_weight is not None:
+            step = step.model_copy(
+                update={
+                    "train": step.train.model_copy(
+                        update={"aux": self.aux.model_copy(update={"weight": aux_weight})}
+                    )
+                }
+            )
         train = step.train.model_copy(
             update={"seed": seed, "lr": lr, "snapshot_steps": self.extraction_snapshots}
         )

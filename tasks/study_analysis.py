@@ -10,6 +10,7 @@ only); the rendered report reads speeds from the checkpoints' records.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import pandas as pd
@@ -24,6 +25,7 @@ from tasks.study_statistics import (
     Comparison,
     CurvePoint,
     Design,
+    VarianceComponents,
     paired_difference,
     smallest_design,
     success_curve,
@@ -58,8 +60,18 @@ class StudyDesign(BaseModel):
     final_budget: int
     extraction_steps: int
     flat_tolerance: float
+    non_inferiority_margin: float
     n_boot: int
     chosen: dict[str, float]
+    grids: dict[str, list[float]]
+
+    def at_edge(self) -> list[str]:
+        """Choices at an end of a grid of 3 or more values (a wider grid might have chosen beyond)."""
+        return [
+            k
+            for k, v in self.chosen.items()
+            if len(self.grids.get(k, [])) >= 3 and v in (min(self.grids[k]), max(self.grids[k]))
+        ]
 
 
 class Precondition(BaseModel):
@@ -94,9 +106,9 @@ def _parse(inputs: dict[str, str], kind: str) -> list[tuple[list[str], str]]:
 
 def _episodes(workspace: Workspace, labelled: list[tuple[dict[str, Any], str]]) -> pd.DataFrame:
     """One row per episode with the study_statistics columns; `goal` is the episode's env seed."""
-    frame = read_episodes(workspace.api, [e for _, e in labelled])
+    frame = read_episodes(workspace.api, [e for _, e in labelled]).rename(columns={"seed": "goal"})
     keys = pd.DataFrame([{**k, "evaluation_id": e} for k, e in labelled])
-    rows = frame.merge(keys, on="evaluation_id").rename(columns={"seed_x": "goal", "seed_y": "seed"})
+    rows = frame.merge(keys, on="evaluation_id", validate="many_to_one")
     return rows[["arm", "draw", "seed", "task", "goal", "budget", "success"]]
 
 
@@ -120,15 +132,15 @@ def _convergence(workspace: Workspace, inputs: dict[str, str], design: StudyDesi
         losses.setdefault((which, int(draw)), {})[int(budget)] = measured_loss(workspace, m)
     rows = []
     for (which, draw), by_budget in sorted(losses.items()):
-        (early, late), final = sorted(by_budget)[-2:], design.extraction_steps
-        drop = (by_budget[early] - by_budget[late]) / by_budget[early]
+        half, final = min(by_budget), max(by_budget)
+        drop = (by_budget[half] - by_budget[final]) / by_budget[half]
         rows.append(
             {
                 "run": which,
                 "draw": draw,
                 "loss_at": {str(b): v for b, v in sorted(by_budget.items())},
-                "relative_drop": drop,
-                "flat": drop < design.flat_tolerance,
+                "relative_drop": drop,  # over the second half; negative: the loss rose (overfitting)
+                "flat": abs(drop) < design.flat_tolerance,
                 "final_step": final,
             }
         )
@@ -145,17 +157,17 @@ def _preconditions(
 ) -> list[Precondition]:
     flat = [r for r in convergence if r["flat"]]
     drops = ", ".join(
-        f"θ_{'ft' if r['run'] == 'standard' else 'ao'}^{r['draw']} {100 * r['relative_drop']:+.1f} %"
+        f"θ_{'ft' if r['run'] == 'standard' else 'ao'}^{r['draw']} {-100 * r['relative_drop']:+.1f} %"
         for r in convergence
     )
     result = [
         Precondition(
             key="a",
             claim="the extraction runs converge (lr chosen on D_ext validation; held-out action loss flat "
-            f"over the last quarter: fell < {100 * design.flat_tolerance:.0f} %)",
+            f"over the second half: moved < {100 * design.flat_tolerance:.0f} %)",
             holds=len(flat) == len(convergence) if convergence else None,
             detail=f"lr {design.chosen['extraction_lr']:g} chosen on validation; held-out loss change over "
-            f"the last quarter: {drops}",
+            f"the second half: {drops}",
         )
     ]
     n_boot = design.n_boot
@@ -187,12 +199,16 @@ def _preconditions(
         )
     )
     merged = _compare(episodes_ext, "meta", "pt", 0, n_boot)
-    worse = merged is not None and merged.ci_high < 0
+    margin = design.non_inferiority_margin
+    not_worse = None
+    if merged is not None:  # non-inferiority: shown when the CI excludes a loss of `margin` points
+        not_worse = True if merged.ci_low > -margin else False if merged.ci_high < 0 else None
     result.append(
         Precondition(
             key="d",
-            claim="θ_meta is not worse than θ_pt before downstream training (D_ext validation goals)",
-            holds=None if merged is None else not worse,
+            claim=f"θ_meta is not worse than θ_pt before downstream training (D_ext validation goals; "
+            f"CI above −{margin:g} points)",
+            holds=not_worse,
             detail=merged.summary() if merged else "not measured",
             comparison=merged,
         )
@@ -245,11 +261,18 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         convergence=convergence,
         final_checkpoints={arm: sorted(ids) for arm, ids in sorted(by_arm.items())},
         designs_for_5_points={
-            f"{c.arm}-{c.baseline}": smallest_design(c.components, n_tasks=c.n_tasks)
+            f"{c.arm}-{c.baseline}": smallest_design(_separable(c.components), n_tasks=c.n_tasks)
             for c in comparisons
             if c.budget == design.primary_budget and c.arm == "capvector"
         },
     )
+
+
+def _separable(components: VarianceComponents) -> VarianceComponents:
+    """Components a small study could not separate (NaN) counted as 0: a design sized from them is a
+    lower bound."""
+    values = components.model_dump()
+    return components.model_copy(update={k: 0.0 for k, v in values.items() if math.isnan(v)})
 
 
 def run_analyse_study(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:

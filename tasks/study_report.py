@@ -57,6 +57,27 @@ def _find(report: StudyReport, arm: str, baseline: str, budget: int) -> Comparis
     )
 
 
+def _target(report: StudyReport, speed: dict[str, float]) -> list[str]:
+    """The bar the study was built for, judged on point estimates and CIs at the primary endpoint."""
+    primary = report.design.primary_budget
+    vs_aux, vs_sft = _find(report, "capvector", "aux", primary), _find(report, "capvector", "sft", primary)
+    if vs_aux is None or vs_sft is None:
+        return []
+    near_aux = -2 <= vs_aux.ci_low and vs_aux.ci_high <= 2
+    above_sft = vs_sft.ci_low >= 5
+    cost = speed["capvector"] / speed["sft"] if "capvector" in speed and "sft" in speed else None
+    cheap = cost is not None and cost <= 1.1
+    met = near_aux and above_sft and cheap
+    return [
+        "",
+        f"Target (CapVector within 2 points of auxiliary SFT, ≥ 5 above SFT, ≤ 1.1× SFT's time per step, "
+        f"at the primary endpoint): **{'met' if met else 'not met'}** — vs auxiliary SFT {_cell(vs_aux)} "
+        f"({'within' if near_aux else 'not shown within'} ±2), vs SFT {_cell(vs_sft)} "
+        f"({'≥ 5 shown' if above_sft else '≥ 5 not shown'}), time per step "
+        f"{f'{cost:.2f}×' if cost is not None else 'not measured'} SFT's.",
+    ]
+
+
 def study_markdown(workspace: Workspace, report: StudyReport) -> str:
     d = report.design
     primary, final = d.primary_budget, d.final_budget
@@ -93,6 +114,7 @@ def study_markdown(workspace: Workspace, report: StudyReport) -> str:
                 if needed
                 else "No design up to 20 draws × 20 seeds × 300 goals per task reaches an MDD of 5 here."
             )
+    lines += _target(report, speed := seconds_per_step(workspace, report))
     lines += ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
     for p in report.preconditions:
         lines.append(f"| ({p.key}) | {p.claim} | {VERDICT[p.holds]} | {p.detail} |")
@@ -106,11 +128,11 @@ def study_markdown(workspace: Workspace, report: StudyReport) -> str:
     lines += ["", "## Success vs downstream steps (mean % [95 % CI])", ""]
     lines.append("| arm | " + " | ".join(str(b) for b in budgets) + " | s/step | × SFT |")
     lines.append("|---|" + "---|" * (len(budgets) + 2))
-    speed = seconds_per_step(workspace, report)
     for arm, points in report.curves.items():
         by = {p.budget: p for p in points}
-        cells = [
-            f"{by[b].mean:.1f} [{by[b].ci_low:.1f}, {by[b].ci_high:.1f}]" if b in by else "—" for b in budgets
+        cells = [  # a success rate lies in [0, 100]: a t interval with few df can reach beyond
+            f"{by[b].mean:.1f} [{max(0.0, by[b].ci_low):.1f}, {min(100.0, by[b].ci_high):.1f}]" if b in by else "—"
+            for b in budgets
         ]
         sec = speed.get(arm)
         ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
@@ -130,4 +152,13 @@ def study_markdown(workspace: Workspace, report: StudyReport) -> str:
     ]
     for name, sel in report.selections.items():
         lines.append(f"- {name}: `{sel[:12]}` (`capvector lineage {sel[:12]}`)")
+    edge = d.at_edge()
+    if edge:
+        lines.append(
+            f"\nChosen at the edge of its grid: {', '.join(edge)} (a wider grid might choose beyond)."
+        )
+    lines.append(
+        "\nTime per step: median over an arm's runs of training time / steps (the λ calibration before "
+        "training excluded), runs sharing 2 cores with other steps, so ratios are rough."
+    )
     return "\n".join(lines) + "\n"
