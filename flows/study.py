@@ -45,22 +45,23 @@ def study_steps(cfg: StudyConfig) -> int:
     s = cfg.study
     cells = len(s.alphas) * len(s.lambda_scales)
     runs = sum(len(cfg.seeds) * (1 if arm in SHARED_ARMS else len(s.draws)) for arm in s.arms)
+    lr_grid = 2 * len(s.extraction_lrs) + 1  # runs, validations, selection
+    aux_grid = 2 * cells + 1 if "aux" in s.arms else 0  # runs, validations, selection
+    tuning_vector = 2  # θ_ao at the tuning seed, its γ
+    lambda_grid = len(s.alphas) + 2 * cells + 1  # merges, runs, validations, selection
+    per_draw = 15  # θ_ft, θ_ao, γ, γ_null, 2 validations, 6 held-out losses, 2 merges, θ_meta's validation
+    compared = runs * (1 + len(cfg.curve_budgets))  # the runs and their test evaluations
+    demos_and_pretraining, pt_validation, analysis = 5, 1, 1
     return (
-        5  # four demo sets, θ_pt
-        + 2 * len(s.extraction_lrs)
-        + 1  # lr grid: runs, validations, selection
-        + 2 * cells
-        + 1  # auxiliary weight grid
-        + len(s.alphas)
-        + 2 * cells
-        + 1  # α × λ grid: merges, runs, validations, selection
-        + 13
-        * len(
-            s.draws
-        )  # θ_ft, θ_ao, γ, γ_null, 2 validations, 4 held-out losses, 2 merges, θ_meta's validation
-        + 1  # θ_pt's validation
-        + runs * (1 + len(cfg.curve_budgets))  # compared runs and their test evaluations
-        + 1  # analysis
+        demos_and_pretraining
+        + lr_grid
+        + aux_grid
+        + tuning_vector
+        + lambda_grid
+        + per_draw * len(s.draws)
+        + pt_validation
+        + compared
+        + analysis
     )
 
 

@@ -6,6 +6,7 @@ second run is answered by the cache."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +122,9 @@ def test_a_second_run_is_answered_by_the_cache(study_home):
         if "] " in line and line.rstrip().endswith(("done", "cached"))
     ]
     assert lines and all(line.endswith("cached") for line in lines)
+    counts = [re.search(r"\[study study-smoke (\d+)/(\d+)\]", line) for line in lines]
+    assert [int(m.group(1)) for m in counts] == list(range(1, len(lines) + 1))
+    assert {int(m.group(2)) for m in counts} == {len(lines)}  # the announced total is what ran
 
 
 def test_study_presets_are_checked_before_anything_runs(tmp_path):
