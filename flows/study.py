@@ -45,7 +45,7 @@ def study_steps(cfg: StudyConfig) -> int:
     s = cfg.study
     cells = len(s.alphas) * len(s.lambda_scales)
     runs = sum(len(cfg.seeds) * (1 if arm in SHARED_ARMS else len(s.draws)) for arm in s.arms)
-    lr_grid = 2 * len(s.extraction_lrs) + 1  # runs, validations, selection
+    lr_grid = 3 * len(s.extraction_lrs) + 1  # runs, validations, held-out losses, selection
     aux_grid = 2 * cells + 1 if "aux" in s.arms else 0  # runs, validations, selection
     tuning_vector = 2  # θ_ao at the tuning seed, its γ
     lambda_grid = len(s.alphas) + 2 * cells + 1  # merges, runs, validations, selection
@@ -79,14 +79,21 @@ class _Study:
         """The id of the checkpoint a run kept after `budget` steps (waits for the run)."""
         return snapshots_of(self.workspace, resolve(checkpoint))[budget]
 
-    def select(self, name: str, cells: list[tuple[dict[str, Any], Any]], context: dict[str, Any]) -> str:
-        """A `select` step over (values, validation evaluation) cells; its id (waits for it)."""
+    def select(
+        self,
+        name: str,
+        cells: list[tuple[dict[str, Any], Any]],
+        context: dict[str, Any],
+        tiebreaks: list[Any] = (),
+    ) -> str:
+        """A `select` step over (values, validation evaluation) cells, ties broken by the `tiebreaks`
+        (held-out loss measurements, one per cell) when given; its id (waits for it)."""
         inputs = {f"cell {i}": evaluation for i, (_, evaluation) in enumerate(cells)}
-        config = {
-            "name": name,
-            "context": context,
-            "candidates": [{"values": v, "evaluation": f"cell {i}"} for i, (v, _) in enumerate(cells)],
-        }
+        inputs |= {f"loss {i}": m for i, m in enumerate(tiebreaks)}
+        candidates = [{"values": v, "evaluation": f"cell {i}"} for i, (v, _) in enumerate(cells)]
+        for i, c in enumerate(candidates[: len(tiebreaks)]):
+            c["tiebreak"] = f"loss {i}"
+        config = {"name": name, "context": context, "candidates": candidates}
         selection = resolve(self.submit(select_task, f"select {name}", inputs, config))
         self.analysis_inputs[label("selection", name)] = selection
         return selection
@@ -108,7 +115,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
 
     # Everything that needs no choice yet: the lr grid, the auxiliary grid, SFT's runs.
     extraction_inputs = {"data": data["extraction"], "init": pretrained}
-    lr_runs, lr_cells = {}, []
+    lr_runs, lr_cells, lr_losses = {}, [], []
     for lr in s.extraction_lrs:
         step = f"tune extraction θ_ft lr={lr}"
         lr_runs[lr] = submit(train_task, step, extraction_inputs, cfg.extraction_run(False, tune, lr))
@@ -116,6 +123,8 @@ def _run_study(study: _Study) -> dict[str, Any]:
             evaluate_task, f"validate θ_ft lr={lr}", {"checkpoint": lr_runs[lr]}, validation_ext
         )
         lr_cells.append(({"lr": lr}, validation))
+        held_out = {"checkpoint": lr_runs[lr], "data": data["heldout"]}
+        lr_losses.append(submit(held_out_loss_task, f"held-out loss θ_ft lr={lr}", held_out, {}))
     tuned_aux = "aux" in s.arms
     aux_runs = [
         (
@@ -153,7 +162,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
         )
 
     # (a) the extraction lr; the auxiliary weight (θ_ao is trained with the weight the aux arm uses).
-    lr_selection = study.select("extraction lr", lr_cells, {"run": "θ_ft", "seed": tune})
+    lr_selection = study.select("extraction lr", lr_cells, {"run": "θ_ft", "seed": tune}, lr_losses)
     lr = chosen(study.workspace, lr_selection)["lr"]
     extraction_choices = {"selection": lr_selection}
     aux_weight = cfg.aux.weight

@@ -14,18 +14,24 @@ from pydantic import BaseModel, Field, model_validator
 
 from artifacts.scores import read_scores
 from tasks.caching import cached_step
+from tasks.held_out_loss import measured_loss
 from tasks.prefect_task import pipeline_task
 from tasks.workspace import Workspace, provenance, workspace_for
 
 SELECTION_KIND = "selection"
-RULE = "highest mean validation success over tasks; a tie goes to the earlier candidate"
+RULE = (
+    "highest mean validation success over tasks; a tie goes to the lower held-out loss where measured "
+    "(a saturated validation set cannot tell candidates apart), then to the earlier candidate"
+)
 
 
 class Candidate(BaseModel):
-    """One point of the grid: its values and the input label of its validation evaluation."""
+    """One point of the grid: its values, the input label of its validation evaluation and, optionally,
+    of a held-out loss measurement (tasks.held_out_loss) that breaks ties."""
 
     values: dict[str, Any]
     evaluation: str = Field(min_length=1)
+    tiebreak: str | None = None
 
 
 class SelectionConfig(BaseModel):
@@ -38,12 +44,16 @@ class SelectionConfig(BaseModel):
         labels = [c.evaluation for c in self.candidates]
         if len(set(labels)) != len(labels):
             raise ValueError(f"selection {self.name!r}: candidates share an evaluation label: {labels}")
+        if len({c.tiebreak is None for c in self.candidates}) > 1:
+            raise ValueError(
+                f"selection {self.name!r}: some candidates have a tiebreak measurement, others not"
+            )
         return self
 
 
 def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     cfg = SelectionConfig.model_validate(config)
-    missing = [c.evaluation for c in cfg.candidates if c.evaluation not in inputs]
+    missing = [x for c in cfg.candidates for x in (c.evaluation, c.tiebreak) if x and x not in inputs]
     if missing:
         raise ValueError(f"step {step!r}: no input for candidate evaluation(s) {missing}")
 
@@ -59,10 +69,12 @@ def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: 
                 "evaluation_id": e,
                 "checkpoint_id": scores[e].checkpoint_id,
                 "validation_success": scores[e].mean_success,
+                **({"held_out_loss": measured_loss(workspace, inputs[c.tiebreak])} if c.tiebreak else {}),
             }
             for c, e in zip(cfg.candidates, eval_ids, strict=True)
         ]
-        best = max(rows, key=lambda r: r["validation_success"])  # max keeps the first of equals
+        # max keeps the first of equals
+        best = max(rows, key=lambda r: (r["validation_success"], -r.get("held_out_loss", 0.0)))
         doc = {
             "name": cfg.name,
             **cfg.context,
@@ -78,7 +90,8 @@ def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: 
             kind=SELECTION_KIND,
             name=step,
             config={"cache_key": key},
-            parents=[(e, "validation") for e in dict.fromkeys(eval_ids)],
+            parents=[(e, "validation") for e in dict.fromkeys(eval_ids)]
+            + [(inputs[c.tiebreak], "tiebreak") for c in cfg.candidates if c.tiebreak],
             **provenance(),
         )
         return record.id

@@ -9,7 +9,7 @@ from __future__ import annotations
 import statistics
 
 from tasks.study_analysis import StudyReport
-from tasks.study_statistics import Comparison
+from tasks.study_statistics import Comparison, CurvePoint
 from tasks.workspace import Workspace
 
 HEADLINE = (
@@ -49,6 +49,11 @@ def _cell(c: Comparison | None) -> str:
     if c is None:
         return "—"
     return f"{c.difference:+.1f} [{c.ci_low:+.1f}, {c.ci_high:+.1f}]"
+
+
+def _mean_cell(p: CurvePoint) -> str:
+    """A success rate lies in [0, 100]: a t interval with few degrees of freedom can reach beyond."""
+    return f"{p.mean:.1f} [{max(0.0, p.ci_low):.1f}, {min(100.0, p.ci_high):.1f}]"
 
 
 def _find(report: StudyReport, arm: str, baseline: str, budget: int) -> Comparison | None:
@@ -130,10 +135,7 @@ def study_markdown(workspace: Workspace, report: StudyReport) -> str:
     lines.append("|---|" + "---|" * (len(budgets) + 2))
     for arm, points in report.curves.items():
         by = {p.budget: p for p in points}
-        cells = [  # a success rate lies in [0, 100]: a t interval with few df can reach beyond
-            f"{by[b].mean:.1f} [{max(0.0, by[b].ci_low):.1f}, {min(100.0, by[b].ci_high):.1f}]" if b in by else "—"
-            for b in budgets
-        ]
+        cells = [_mean_cell(by[b]) if b in by else "—" for b in budgets]
         sec = speed.get(arm)
         ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
         lines.append(

@@ -80,3 +80,22 @@ def test_a_step_using_a_chosen_value_names_the_selection_as_its_parent(tmp_path)
     assert (selection, "selected_by") in roles and (files["vector"], "vector") in roles
     lineage = {node.id for node in ws.api.ancestors(merged)}
     assert set(evals.values()) <= lineage  # from θ_meta back to the validation runs behind α
+
+
+def test_a_tie_on_validation_goes_to_the_lower_held_out_loss(tmp_path):
+    ws = Workspace(tmp_path / "home")
+    same = [True, False]
+    inputs = {f"lr {lr}": _evaluation(ws, f"lr {lr}", same) for lr in (1e-4, 1e-3)}
+    losses = {1e-4: 0.9, 1e-3: 0.4}  # the later candidate fits the held-out demonstrations better
+    for lr, value in losses.items():
+        inputs[f"loss {lr}"] = ws.api.register_json({"action_loss": value}, "measurement", f"loss {lr}").id
+    config = _config([1e-4, 1e-3])
+    for c in config["candidates"]:
+        c["tiebreak"] = f"loss {c['values']['lr']}"
+    selection = run_select(ws, "select lr", inputs, config)
+    assert chosen(ws, selection) == {"lr": 1e-3}
+    roles = ws.api.query("SELECT role FROM edges WHERE child = $c", {"c": selection})["role"].tolist()
+    assert sorted(roles) == ["tiebreak", "tiebreak", "validation", "validation"]
+    config["candidates"][0].pop("tiebreak")
+    with pytest.raises(ValueError, match="some candidates have a tiebreak"):
+        run_select(ws, "select lr", inputs, config)
