@@ -183,7 +183,8 @@ def _run_study(study: _Study) -> dict[str, Any]:
             )
 
     # The tuning γ (tuning seed, never a compared draw) and the α × λ grid on it.
-    inputs = {**extraction_inputs, **extraction_choices}
+    inputs = {**extraction_inputs, **extraction_choices}  # θ_ao's: the lr and the auxiliary weight
+    standard_inputs = {**extraction_inputs, "selection": lr_selection}  # θ_ft uses the lr only
     tuning_ao = submit(
         train_task, "tune extraction θ_ao", inputs, cfg.extraction_run(True, tune, lr, aux_weight)
     )
@@ -220,7 +221,9 @@ def _run_study(study: _Study) -> dict[str, Any]:
     # Every draw's θ_ft, θ_ao, γ and null vector (while the grid trains).
     draws: dict[int, dict[str, Any]] = {}
     for d in s.draws:
-        ft = submit(train_task, f"draw {d} standard SFT θ_ft", inputs, cfg.extraction_run(False, d, lr))
+        ft = submit(
+            train_task, f"draw {d} standard SFT θ_ft", standard_inputs, cfg.extraction_run(False, d, lr)
+        )
         ao = submit(
             train_task, f"draw {d} auxiliary SFT θ_ao", inputs, cfg.extraction_run(True, d, lr, aux_weight)
         )
