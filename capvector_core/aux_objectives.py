@@ -130,6 +130,24 @@ def _resolve_layer(layer: int, n_layers: int, field: str) -> int:
     return idx
 
 
+def _token_alignment(
+    objective: AuxObjective, features: Mapping[str, FeatureSpec], params: BaseModel, name: str, point_dim: int
+) -> FeatureSpec:
+    """What both Spatial Forcing analogues share: the hidden layer they read (3/4 depth by default),
+    the head on its vision tokens and the frozen, seeded Fourier map of `point_dim`-d points."""
+    if params.feature_dim % 2:
+        raise ValueError(f"{name} feature_dim must be even, got {params.feature_dim}")
+    spec = features["obs_tokens"]
+    default = max(0, math.ceil(0.75 * spec.n_layers) - 1)
+    layer = default if params.layer is None else params.layer
+    objective.layer = _resolve_layer(layer, spec.n_layers, f"{name} layer")
+    objective.head = _mlp(spec.dim, params.hidden_dim, params.feature_dim)
+    gen = torch.Generator().manual_seed(params.seed)
+    fourier = torch.randn(point_dim, params.feature_dim // 2, generator=gen) * params.fourier_scale
+    objective.register_buffer("fourier", fourier)
+    return spec
+
+
 @register_objective("spatial")
 class SpatialObjective(AuxObjective):
     feature_names = ("obs_tokens",)
@@ -147,17 +165,7 @@ class SpatialObjective(AuxObjective):
 
     def __init__(self, features: Mapping[str, FeatureSpec], params: Params):
         super().__init__(features, params)
-        if params.feature_dim % 2:
-            raise ValueError(f"spatial feature_dim must be even, got {params.feature_dim}")
-        spec = features["obs_tokens"]
-        n = spec.n_layers
-        default = max(0, math.ceil(0.75 * n) - 1)
-        self.layer = _resolve_layer(default if params.layer is None else params.layer, n, "spatial layer")
-        self.head = _mlp(spec.dim, params.hidden_dim, params.feature_dim)
-        gen = torch.Generator().manual_seed(params.seed)
-        self.register_buffer(
-            "fourier", torch.randn(9, params.feature_dim // 2, generator=gen) * params.fourier_scale
-        )
+        spec = _token_alignment(self, features, params, "spatial", point_dim=9)
         self.register_buffer("token_pos", _sinusoid(spec.n_tokens, params.feature_dim))
 
     def target(self, privileged: torch.Tensor) -> torch.Tensor:
@@ -192,20 +200,8 @@ class SpatialDepthObjective(AuxObjective):
 
     def __init__(self, features: Mapping[str, FeatureSpec], params: Params):
         super().__init__(features, params)
-        if params.feature_dim % 2:
-            raise ValueError(f"spatial_depth feature_dim must be even, got {params.feature_dim}")
-        spec = features["obs_tokens"]
-        n = spec.n_layers
-        default = max(0, math.ceil(0.75 * n) - 1)
-        self.layer = _resolve_layer(
-            default if params.layer is None else params.layer, n, "spatial_depth layer"
-        )
+        spec = _token_alignment(self, features, params, "spatial_depth", point_dim=3)
         self.n_tokens = spec.n_tokens
-        self.head = _mlp(spec.dim, params.hidden_dim, params.feature_dim)
-        gen = torch.Generator().manual_seed(params.seed)
-        self.register_buffer(
-            "fourier", torch.randn(3, params.feature_dim // 2, generator=gen) * params.fourier_scale
-        )
         position = _sinusoid(spec.n_tokens, params.feature_dim)
         self.register_buffer(
             "token_pos", position if params.position_embedding else torch.zeros_like(position)
