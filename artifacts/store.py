@@ -41,6 +41,7 @@ import shutil
 import stat
 import threading
 import time
+import unicodedata
 import uuid
 from collections.abc import Iterable, Iterator, Mapping
 from datetime import datetime
@@ -206,6 +207,30 @@ def _members(src_dir: str) -> list[tuple[str, str]]:
     return sorted(members)
 
 
+# Characters a one-line name must not hold: control characters (newline, tab, escape), the Unicode line
+# and paragraph separators, and format characters (bidi overrides that reorder what a terminal shows).
+_NOT_IN_A_LINE = ("Cc", "Cf", "Zl", "Zp")
+
+
+def check_single_line(what: str, value: str) -> str:
+    """Refuse a name, kind or role that is not one printable line: a newline in a name would draw a
+    forged lineage line in every view. Raises ValueError naming the field and the character."""
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"artifact {what} must be a non-empty string, got {value!r}")
+    for i, c in enumerate(value):
+        if unicodedata.category(c) in _NOT_IN_A_LINE:
+            raise ValueError(
+                f"artifact {what} {value!r} holds the control character U+{ord(c):04X} at position {i}; "
+                "names are single printable lines"
+            )
+    return value
+
+
+def _check_labels(kind: str, name: str) -> None:
+    check_single_line("kind", kind)
+    check_single_line("name", name)
+
+
 def _plain_name(filename: str) -> str:
     filename = safe_relpath(filename)
     if "/" in filename:
@@ -345,6 +370,7 @@ class ArtifactStore:
                 if isinstance(p, ParentRef)
                 else ParentRef(id=p[0], role=p[1], attrs=p[2] if len(p) > 2 else {})
             )
+            check_single_line("parent role", ref.role)
             try:
                 full = self.resolve(ref.id)
             except ArtifactNotFound:
@@ -472,6 +498,7 @@ class ArtifactStore:
         `sha256`: what the caller hashed these bytes to; other bytes are refused (ValueError).
         `parent_hashes`: see `_check_parent`."""
         filename = _plain_name(filename)
+        _check_labels(kind, name)
         refs = self._resolve_parents(parents, parent_hashes)
         staged = self._stage()
         try:
@@ -568,6 +595,7 @@ class ArtifactStore:
         src_dir = os.path.abspath(os.fspath(src_dir))
         if not os.path.isdir(src_dir):
             raise NotADirectoryError(src_dir)
+        _check_labels(kind, name)
         meta = dict(
             library_versions=library_versions,
             flow_run_id=flow_run_id,
@@ -629,6 +657,7 @@ class ArtifactStore:
     ) -> ArtifactRecord:
         """Commit a file or folder of `staging()` by renaming it (same filesystem, no copy); members
         without a hash from `hashes`/`sha256` are hashed here. Each file is fsynced before the commit."""
+        _check_labels(kind, name)
         refs = self._resolve_parents(parents, parent_hashes)
         staged = self._p("tmp", uuid.uuid4().hex)
         if layout == "file":

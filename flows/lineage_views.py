@@ -8,6 +8,7 @@ through, and every other edge into it as a one-line reference marked ↑ (shown 
 
 from __future__ import annotations
 
+import unicodedata
 from collections.abc import Sequence
 
 from artifacts.records import ArtifactRecord, LineageRow
@@ -17,14 +18,29 @@ from artifacts.records import ArtifactRecord, LineageRow
 _MERMAID_ESCAPES = {"#": "#35;", '"': "#quot;", "|": "#124;", "<": "#lt;", ">": "#gt;", "`": "#96;"}
 
 
+_C_ESCAPES = {"\n": "\\n", "\r": "\\r", "\t": "\\t"}
+
+
+def single_line(text: str) -> str:
+    """`text` as one printable line: control, format and line-separator characters written as escapes
+    (`\\n`, `\\x1b`, `\\u202e`). Registration refuses them; a record written before that may hold them,
+    and a newline in a name would otherwise draw a forged lineage line."""
+    out = []
+    for c in text:
+        if unicodedata.category(c) in ("Cc", "Cf", "Zl", "Zp"):
+            out.append(_C_ESCAPES.get(c) or (f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}"))
+        else:
+            out.append(c)
+    return "".join(out)
+
+
 def _label(row_id: str, kind: str | None, name: str | None) -> str:
-    return f"{kind or '?'} {name or ''} [{row_id[:12]}]".strip()
+    return single_line(f"{kind or '?'} {name or ''} [{row_id[:12]}]".strip())
 
 
 def mermaid_text(text: str) -> str:
     """`text` made safe inside a quoted Mermaid label or an edge label (one line, entity codes)."""
-    out = "".join(_MERMAID_ESCAPES.get(c, c) for c in text)
-    return " ".join(out.splitlines())
+    return "".join(_MERMAID_ESCAPES.get(c, c) for c in single_line(text))
 
 
 def lineage_edges(rows: Sequence[LineageRow], root_id: str) -> list[tuple[str, str, str, str]]:
@@ -71,7 +87,7 @@ def as_tree(rows: list[LineageRow], root: ArtifactRecord) -> str:
         for i, (far, role) in enumerate(items):
             last = i == len(items) - 1
             row = by_id[far]
-            label = f"({role}) {_label(far, row.kind, row.name)}"
+            label = f"({single_line(role)}) {_label(far, row.kind, row.name)}"
             branch = "└── " if last else "├── "
             if home_of(row) == node and far not in shown:
                 shown.add(far)
