@@ -194,17 +194,93 @@ def flush_soon(path: str | os.PathLike[str]) -> None:
 
 
 def _members(src_dir: str) -> list[tuple[str, str]]:
-    """(relative path, full path) of every file under a directory; a symlinked directory is refused
-    (following it could loop or pull in an unbounded tree)."""
+    """(relative path, full path) of every file under a directory, each a regular file inside it.
+
+    Refused, naming the member (ValueError): a symlinked directory (following it could loop or pull in
+    an unbounded tree), a symlink whose target lies outside the folder or is not a regular file
+    (`notes.txt -> /etc/passwd`), and anything that is not a regular file: a FIFO would hang the
+    reader, a device (`/dev/zero`) would be copied until the disk fills. A link to a regular file
+    inside the folder is stored as its content."""
     members = []
+    root = os.path.realpath(src_dir)
     for dirpath, dirnames, filenames in os.walk(src_dir):
         for d in dirnames:
             if os.path.islink(os.path.join(dirpath, d)):
                 raise ValueError(f"symlinked directory {os.path.join(dirpath, d)} cannot be stored")
         for fn in filenames:
             full = os.path.join(dirpath, fn)
-            members.append((safe_relpath(os.path.relpath(full, src_dir).replace(os.sep, "/")), full))
+            rel = safe_relpath(os.path.relpath(full, src_dir).replace(os.sep, "/"))
+            _regular_member(full, rel, src_dir, root)
+            members.append((rel, full))
     return sorted(members)
+
+
+def _what(mode: int) -> str:
+    for test, name in [
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISDIR, "a directory"),
+    ]:
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _regular_member(full: str, rel: str, src_dir: str, root: str) -> int:
+    """Size of a member that is a regular file inside the folder (directly or by a link that stays
+    inside); ValueError naming it otherwise. Nothing is opened: a FIFO is never waited on."""
+    st = os.lstat(full)
+    if stat.S_ISLNK(st.st_mode):
+        target = os.path.realpath(full)
+        if not (target + os.sep).startswith(root + os.sep) or target == root:
+            raise ValueError(
+                f"{rel} in {src_dir} is a symlink to {target}, outside the folder; only regular files "
+                "inside the folder are stored"
+            )
+        st = os.stat(target)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(
+                f"{rel} in {src_dir} is a symlink to {_what(st.st_mode)}; only regular files are stored"
+            )
+    elif not stat.S_ISREG(st.st_mode):
+        raise ValueError(f"{rel} in {src_dir} is {_what(st.st_mode)}; only regular files are stored")
+    return st.st_size
+
+
+class _Bounded(io.RawIOBase):
+    """At most `limit` bytes of `f`: a member is read up to the size it was listed with, plus one byte
+    to notice that it grew (a file that grows without end must not fill the disk)."""
+
+    def __init__(self, f: BinaryIO, limit: int):
+        self.f, self.left = f, limit
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buf: Any) -> int:
+        if self.left <= 0:
+            return 0
+        view = memoryview(buf)[: self.left]
+        n = self.f.readinto(view) or 0
+        self.left -= n
+        return n
+
+
+def _open_member(full: str, rel: str, src_dir: str) -> tuple[BinaryIO, int]:
+    """A member of a folder being stored, opened only if it is (still) a regular file inside the
+    folder (checked again on the open file: it may have been swapped since it was listed), and its size."""
+    size = _regular_member(full, rel, src_dir, os.path.realpath(src_dir))
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
+    if not os.path.islink(full):
+        flags |= getattr(os, "O_NOFOLLOW", 0)
+    fd = os.open(full, flags)
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode) or st.st_size != size:
+        os.close(fd)
+        raise ValueError(f"{rel} in {src_dir} changed while it was being stored; run the command again")
+    return os.fdopen(fd, "rb", buffering=0), size
 
 
 # Characters a one-line name must not hold: control characters (newline, tab, escape), the Unicode line
@@ -587,10 +663,12 @@ class ArtifactStore:
     ) -> ArtifactRecord:
         """Store a local directory tree (dataset, sharded checkpoint, adapter) as one artifact.
 
-        Symlinked files are stored as their content; symlinked directories are refused because
-        following them could loop or pull in an unbounded tree. A directory in this store's
-        `staging()` is moved in; `hashes` (member -> sha256 as its writer or reader took it) spare
-        reading those members again there, and must match elsewhere.
+        Only regular files inside the folder are stored (see `_members`): a link to a file inside it
+        as that file's content; a link leading out, a symlinked directory, a FIFO or a device is
+        refused naming the member, before anything is written. Each member is read up to the size it
+        was listed with, so a file that grows meanwhile is refused rather than copied without end.
+        A directory in this store's `staging()` is moved in; `hashes` (member -> sha256 as its writer
+        or reader took it) spare reading those members again there, and must match elsewhere.
         """
         src_dir = os.path.abspath(os.fspath(src_dir))
         if not os.path.isdir(src_dir):
@@ -614,8 +692,13 @@ class ArtifactStore:
             for rel, full in members:
                 dst = posixpath.join(staged, rel)
                 self.fs.makedirs(posixpath.dirname(dst), exist_ok=True)
-                with open(full, "rb", buffering=0) as f:
-                    digest, size = self._write_stream(f, dst)
+                f, listed = _open_member(full, rel, src_dir)
+                with f:
+                    digest, size = self._write_stream(_Bounded(f, listed + 1), dst)
+                if size != listed:
+                    raise ValueError(
+                        f"{rel} in {src_dir} changed while it was being stored; run the command again"
+                    )
                 entries.append((rel, size, digest))
             _expect(hashes or {}, entries)
             if self.local:

@@ -89,3 +89,69 @@ def test_an_existing_name_with_a_newline_is_escaped_in_every_view(tmp_path, monk
     mermaid = cli(home, "lineage", child, "--format", "mermaid")
     assert mermaid.exit_code == 0
     assert len(mermaid.output.splitlines()) == 2 and "pt\\n" in mermaid.output
+
+
+# ---------------------------------------------------------------------------- 1: folder imports
+def _plant(folder: Path, how: str) -> str:
+    """Put something that is not the checkpoint into an import folder; returns its member name."""
+    if how == "symlink out":
+        (folder / "notes.txt").symlink_to("/etc/passwd")
+        return "notes.txt"
+    if how == "fifo":
+        os.mkfifo(folder / "pipe")
+        return "pipe"
+    if how == "device link":
+        (folder / "zeros.bin").symlink_to("/dev/zero")
+        return "zeros.bin"
+    (folder / "sub").mkdir()
+    (folder / "sub" / "link").symlink_to("../../outside.txt")  # relative, leading out of the folder
+    (folder.parent / "outside.txt").write_text("secret")
+    return "sub/link"
+
+
+@pytest.mark.parametrize("how", ["symlink out", "fifo", "device link", "relative link out"])
+def test_a_folder_import_reads_only_regular_files_inside_the_folder(tmp_path, how):
+    from conftest import run_cli
+
+    home, folder = tmp_path / "home", _sharded(tmp_path / "ckpt")
+    member = _plant(folder, how)
+    # The console entry point in a subprocess with a deadline: a FIFO must not hang the import.
+    result = run_cli("import", str(folder), home=home, check=False, timeout=120)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    line = result.stderr.strip()
+    assert len(line.splitlines()) == 1 and member in line and "regular file" in line, line
+    assert "root:" not in result.stderr + result.stdout  # /etc/passwd's bytes are never echoed
+    store = ArtifactsAPI(str(home)).store
+    assert list(store.iter_ids()) == []  # nothing stored
+    objects = Path(store.root) / "objects"
+    assert not any(p.is_file() for p in objects.rglob("*")) and not any(Path(store.root, "tmp").glob("*"))
+
+
+def test_a_link_inside_the_folder_is_stored_as_its_content(tmp_path):
+    home, folder = tmp_path / "home", _sharded(tmp_path / "ckpt")
+    (folder / "README.md").write_text("a model card")
+    (folder / "card.md").symlink_to("README.md")
+    result = cli(home, "import", str(folder))
+    assert result.exit_code == 0, result.output
+    record = ArtifactsAPI(str(home)).store.get(result.output.strip())
+    assert {"README.md", "card.md"} <= {f.path for f in record.files}
+
+
+def test_a_member_that_grows_while_it_is_copied_is_refused(tmp_path, monkeypatch):
+    """The copy of each member is bounded by the size it was listed with."""
+    store = store_mod.ArtifactStore(tmp_path / "store", cache_dir=tmp_path / "cache")
+    folder = tmp_path / "d"
+    folder.mkdir()
+    (folder / "log.txt").write_bytes(b"x" * 10)
+    real = store_mod._open_member
+
+    def open_then_grow(full, rel, src_dir):
+        f, size = real(full, rel, src_dir)
+        with open(full, "ab") as out:
+            out.write(b"y" * 100)  # another writer appends after the file was listed and opened
+        return f, size
+
+    monkeypatch.setattr(store_mod, "_open_member", open_then_grow)
+    with pytest.raises(ValueError, match="log.txt .* changed while it was being stored"):
+        store.put_dir(folder, "dataset", "d")
+    assert list(store.iter_ids()) == []
