@@ -47,7 +47,7 @@ Batcher = Callable[[torch.Tensor], Batch]
 class PolicyConfig(BaseModel):
     """Base of every policy config: its registered `type` and the observations it consumes."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN/Inf in any field: refused at load
 
     type: str = DEFAULT_POLICY_TYPE
     obs_mode: Literal["state", "pixels"] = "state"

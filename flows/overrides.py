@@ -72,10 +72,16 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[BaseModel]) -> dict[str, Any]:
-    """Return a copy of `data` with every override set, after checking its key path on `model`."""
+    """Return a copy of `data` with every override set, after checking its key path on `model`.
+
+    `...type=` overrides (a polymorphic config's class, e.g. `policy.type=flow`) are applied first, in
+    their given order, and every other key after them, so a key is always checked against the type the
+    config ends up with: `policy.integration_steps=5 policy.type=flow` means what the other order means.
+    """
     result: dict[str, Any] = _deep_copy(data)
-    for text in overrides:
-        path, value = parse_override(text)
+    parsed = [parse_override(text) for text in overrides]
+    parsed = [o for o in parsed if o[0][-1] == "type"] + [o for o in parsed if o[0][-1] != "type"]
+    for path, value in parsed:
         node, current = result, model
         for depth, part in enumerate(path):
             if current is not None:

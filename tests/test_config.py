@@ -161,3 +161,76 @@ def test_step_configs_refuse_nan_and_inf():
     for model, data, field in cases:
         with pytest.raises(ValidationError, match=rf"(?m)^{field}\n.*finite number"):
             model.model_validate(data)
+
+
+# ---------------------------------------------------------------------------- policy configs
+@pytest.mark.parametrize(
+    ("overrides", "field"),
+    [
+        (["policy.type=flow", "policy.time_beta=[.nan, 1.0]"], "policy.time_beta.0"),
+        (["policy.type=flow", "policy.time_beta=[1.5, .inf]"], "policy.time_beta.1"),
+        (["policy.dropout=.nan"], "policy.dropout"),
+        (["policy.type=flow", "policy.dropout=.nan"], "policy.dropout"),
+    ],
+)
+def test_policy_configs_refuse_nan_and_inf_naming_the_field(overrides, field):
+    """NaN in the flow policy's time_beta used to load and fail only in training (torch's Beta)."""
+    with pytest.raises(ValidationError, match=rf"(?m)^{re.escape(field)}\n.*finite number"):
+        load_config("smoke", overrides)
+
+
+def test_policy_configs_refuse_nan_and_inf_directly():
+    from capvector_core.policies.flow import FlowConfig
+    from capvector_core.policies.l1_chunk import L1ChunkConfig
+
+    for model, data, field in [
+        (FlowConfig, {"time_beta": (float("nan"), 1.0)}, "time_beta.0"),
+        (FlowConfig, {"dropout": float("inf")}, "dropout"),
+        (L1ChunkConfig, {"dropout": float("nan")}, "dropout"),
+    ]:
+        with pytest.raises(ValidationError, match=rf"(?m)^{re.escape(field)}\n.*finite number"):
+            model.model_validate(data)
+    with pytest.raises(ValidationError, match=r"time_beta\.1\n.*greater than 0"):
+        FlowConfig(time_beta=(1.5, 0.0))  # Beta(a, 0) is no distribution
+
+
+def test_policy_type_override_is_independent_of_order():
+    a = load_config("smoke", ["policy.type=flow", "policy.integration_steps=5"])
+    b = load_config("smoke", ["policy.integration_steps=5", "policy.type=flow"])
+    assert b.policy.type == "flow" and b.policy.integration_steps == 5 and a == b
+
+
+def _flow_preset(tmp_path):
+    text = (__import__("conftest").REPO / "flows" / "presets" / "smoke.yaml").read_text()
+    assert "\npolicy: {" in text
+    path = tmp_path / "smoke-flow.yaml"
+    path.write_text(
+        text.replace("\npolicy: {", "\npolicy: {type: flow, integration_steps: 3, time_beta: [2.0, 1.0], ")
+    )
+    return path
+
+
+def test_switching_a_flow_preset_back_to_l1_chunk_drops_the_flow_keys(tmp_path):
+    path = _flow_preset(tmp_path)
+    assert load_config(str(path)).policy.integration_steps == 3
+    for overrides in (
+        ["policy.type=l1_chunk"],
+        ["policy.type=l1_chunk", "policy.d_model=64"],
+        ["policy.d_model=64", "policy.type=l1_chunk"],
+    ):
+        with pytest.warns(
+            UserWarning, match=r"policy.type=l1_chunk: integration_steps, time_beta do not apply"
+        ):
+            config = load_config(str(path), overrides)
+        assert config.policy.type == "l1_chunk" and config.policy.n_layers == 2
+        assert config.policy.d_model == (64 if len(overrides) == 2 else 32)
+    # A flow key set on the command line is checked against the final type, in either order.
+    for overrides in (
+        ["policy.type=l1_chunk", "policy.integration_steps=5"],
+        ["policy.integration_steps=5", "policy.type=l1_chunk"],
+    ):
+        with (
+            pytest.warns(UserWarning, match="were dropped"),
+            pytest.raises(ConfigKeyError, match=r"'policy.in"),
+        ):
+            load_config(str(path), overrides)

@@ -26,7 +26,7 @@ from collections.abc import Collection
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, PositiveFloat
 from torch import nn
 
 from capvector_core.policies.token_backbone import ActionHead, Block, TokenBackboneConfig, TokenPolicy
@@ -37,7 +37,9 @@ class FlowConfig(TokenBackboneConfig):
     type: str = "flow"
     integration_steps: int = Field(10, gt=0, description="Euler steps from noise to actions at inference")
     inference_seed: int = 0
-    time_beta: tuple[float, float] = Field((1.5, 1.0), description="Beta(a, b) for the training time τ")
+    time_beta: tuple[PositiveFloat, PositiveFloat] = Field(
+        (1.5, 1.0), description="Beta(a, b) for the training time τ (finite, > 0)"
+    )
 
 
 def time_embedding(
