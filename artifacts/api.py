@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+import duckdb
 import pandas as pd
 from pydantic import BaseModel
 
@@ -31,7 +32,7 @@ from artifacts.catalogue import (
     VerifyReport,
     load_doc,
 )
-from artifacts.errors import ArtifactError, ArtifactNotFound, CatalogueBusy, UnknownParent
+from artifacts.errors import ArtifactError, ArtifactNotFound, CatalogueBusy, CorruptArtifact, UnknownParent
 from artifacts.records import (
     ArtifactRecord,
     EvaluationDoc,
@@ -88,6 +89,7 @@ class ArtifactsAPI:
         self._pending_runs: dict[str, RunRecord] = {}
         self._busy = False
         self._lock = threading.RLock()
+        self.store.unsealed_guard = self._refuse_downgrade
         if catch_up:
             self.catch_up()
 
@@ -115,6 +117,28 @@ class ArtifactsAPI:
                 report.runs,
             )
         return report
+
+    def _refuse_downgrade(self, record: ArtifactRecord) -> None:
+        """An unsealed sidecar of an artifact the catalogue indexed from a sealed one: its seal was
+        stripped (and `format: 1` written) to edit it. Refused like a broken seal, wherever it is read
+        (`show`, `Workspace.path`, a registration naming it as a parent, `verify`, a rebuild).
+
+        Without a readable catalogue nothing is known; a warning says so and the record loads as
+        unsealed (as a genuinely old one does)."""
+        if record.id in self._pending:
+            return
+        try:
+            sealed = self.catalogue.recorded_sealed(record.id)
+        except (ArtifactError, duckdb.Error) as e:
+            log.warning("unsealed sidecar of %s not compared with the catalogue (%s)", record.id, e)
+            return
+        if sealed:
+            raise CorruptArtifact(
+                record.id,
+                "its sidecar carries no seal, but the catalogue recorded it sealed at registration: the "
+                "seal was stripped (its kind, name, config and lineage are not trusted; re-run the "
+                "computation that produced it to change them)",
+            )
 
     @property
     def pending(self) -> int:

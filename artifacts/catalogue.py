@@ -214,6 +214,7 @@ def rows_for(record: ArtifactRecord, doc: Doc = None) -> dict[str, list[dict[str
             created_at=record.created_at,
             flow_run_id=record.flow_run_id,
             task_run_id=record.task_run_id,
+            sealed=record.sealed,
         )
     )
     for p in record.parents:
@@ -295,12 +296,18 @@ class LineageNode(LineageRow):
 
 
 class RebuildReport(BaseModel):
-    """What a rebuild indexed, and which artifacts it skipped because they failed verification."""
+    """What a rebuild indexed, and which artifacts it skipped because they failed verification.
+
+    `unsealed`: artifacts whose sidecar carries no seal (indexed from it only when the catalogue had no
+    row for them); `kept`: artifacts whose catalogue rows were kept instead of their sidecar (unsealed
+    or failing verification: a row written from a sealed sidecar at registration is worth more)."""
 
     artifacts: int
     runs: int
     corrupt: list[str]
     seconds: float
+    unsealed: list[str] = Field(default_factory=list)
+    kept: list[str] = Field(default_factory=list)
 
 
 class SyncReport(BaseModel):
@@ -606,27 +613,56 @@ class Catalogue:
         return marker
 
     def rebuild(self, store: Any) -> RebuildReport:
-        """Recreate every table from the store alone, in one transaction (readers see old or new, never half).
+        """Recreate every table from the store, in one transaction (readers see old or new, never half).
 
         The store is read before the lock is taken, so other writers wait only for the inserts.
-        Artifacts whose sidecar or indexed content fails its hash are skipped and listed.
+        Artifacts whose sidecar or indexed content fails its hash are skipped and listed. An unsealed
+        sidecar (no seal: its metadata is unprotected) is never trusted over the catalogue: where the
+        catalogue has a row for it, that row and its edges are kept, as are the rows of artifacts that
+        fail verification; only an artifact the catalogue does not know is indexed from an unsealed
+        sidecar (and listed as such).
         """
         t0 = time.perf_counter()
         key, fp = store_key(store), store_fingerprint(store)  # before listing: later commits move it
         items, corrupt = self._gather(store, store.iter_ids())
         runs = [run_row(r) for r in store.iter_runs()]
-        rows = self._merge([*(rows_for(r, d) for r, d in items), {"runs": runs}])
+        unsealed = sorted(r.id for r, _ in items if not r.sealed)
+        untrusted = set(unsealed) | set(corrupt)
 
         def replace(con: duckdb.DuckDBPyConnection) -> tuple:
-            for table in (*DATA_TABLES, "store_sync"):
+            known = {r[0] for r in con.execute("SELECT id FROM artifacts").fetchall()}
+            keep = sorted(untrusted & known)
+            for table in ("runs", "store_sync"):
                 con.execute(f"DELETE FROM {table}")
-            self._insert(con, rows, "OR IGNORE")
+            for table, column in ARTIFACT_COLUMNS.items():
+                con.execute(
+                    f"DELETE FROM {table} WHERE {column} NOT IN (SELECT unnest(?::VARCHAR[]))", [keep]
+                )
+            trusted = [rows_for(r, d) for r, d in items if r.id not in keep]
+            self._insert(con, self._merge([*trusted, {"runs": runs}]), "OR IGNORE")
+            kept[:] = keep
             return self._set_marker(con, key, fp)
 
+        kept: list[str] = []
         self.markers = {key: self._write(replace)}
+        if kept:
+            log.warning("catalogue rows kept over unsealed or failing sidecars: %s", ", ".join(kept))
         return RebuildReport(
-            artifacts=len(items), runs=len(runs), corrupt=sorted(corrupt), seconds=time.perf_counter() - t0
+            artifacts=len(items) - len(set(kept) & set(unsealed)),
+            runs=len(runs),
+            corrupt=sorted(corrupt),
+            seconds=time.perf_counter() - t0,
+            unsealed=unsealed,
+            kept=kept,
         )
+
+    def recorded_sealed(self, artifact_id: str) -> bool | None:
+        """Whether the sidecar this catalogue indexed for `artifact_id` was sealed (None: no row, or a
+        row from before the catalogue recorded it)."""
+        rows = self._lookup(
+            lambda con: con.execute("SELECT sealed FROM artifacts WHERE id = ?", [artifact_id]).fetchall()
+        )
+        return rows[0][0] if rows else None
 
     def _indexed(self) -> tuple[set[str], dict[str, tuple]]:
         def read(con: duckdb.DuckDBPyConnection) -> tuple[set[str], dict[str, tuple]]:

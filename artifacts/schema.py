@@ -52,12 +52,19 @@ V2 = """
 CREATE TABLE store_sync (store VARCHAR PRIMARY KEY, fingerprint VARCHAR, synced_at TIMESTAMP NOT NULL);
 """
 
+# Whether the sidecar indexed was sealed: an unsealed sidecar must never replace, in `show`, a read or a
+# rebuild, a record the catalogue saw sealed (someone stripped the seal and wrote `format: 1` to edit it).
+# NULL for rows indexed before this column existed (not known).
+V3 = """
+ALTER TABLE artifacts ADD COLUMN sealed BOOLEAN;
+"""
+
 SCHEMA_VERSION_DDL = (
     "CREATE TABLE IF NOT EXISTS schema_version (version INTEGER PRIMARY KEY, applied_at TIMESTAMP)"
 )
 
 # Append (version, sql) pairs; never edit an applied one. Versions must increase by one.
-MIGRATIONS: list[tuple[int, str]] = [(1, V1), (2, V2)]
+MIGRATIONS: list[tuple[int, str]] = [(1, V1), (2, V2), (3, V3)]
 
 DATA_TABLES = ("artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs")
 # Rows derived from one artifact, by the column naming it: what `gc` removes for an artifact that is gone.

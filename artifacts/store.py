@@ -25,7 +25,9 @@ Integrity: nothing wrong is ever served under a trusted id.
   rename, with the hashes its writer took, not copied and hashed once more.
 - Metadata: the sidecar carries a seal, sha256 of its canonical metadata (records.metadata_digest);
   an edited sidecar is refused naming the id. Format-1 sidecars (written before sealing) still load,
-  as unsealed. The seal catches accidental edits and tooling bugs, not a writer who recomputes it.
+  as unsealed, unless `unsealed_guard` (set by artifacts.api) knows the artifact was registered
+  sealed: a stripped seal is then refused like a broken one. The seal catches accidental edits and
+  tooling bugs, not a writer who recomputes it.
 - `audit()` is the full check behind `capvector verify`: no memo, no writes.
 """
 
@@ -43,7 +45,7 @@ import threading
 import time
 import unicodedata
 import uuid
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -336,6 +338,9 @@ class ArtifactStore:
         self.root = os.path.abspath(root_path) if self.local else root_path.rstrip("/")
         self.cache_dir = Path(cache_dir) if cache_dir else home_mod.local_cache_dir(self.url) / "objects"
         self.fs.makedirs(self._p("objects"), exist_ok=True)
+        # Called with every record read from an unsealed sidecar (see artifacts.api: it raises
+        # CorruptArtifact when the catalogue recorded that artifact sealed, i.e. the seal was stripped).
+        self.unsealed_guard: Callable[[ArtifactRecord], None] | None = None
 
     # ---------------------------------------------------------------- paths
     def _p(self, *parts: str) -> str:
@@ -827,6 +832,8 @@ class ArtifactStore:
         )
         if record.id != artifact_id or expected != artifact_id:
             raise CorruptArtifact(artifact_id, "sidecar does not describe this id")
+        if not record.sealed and self.unsealed_guard is not None:
+            self.unsealed_guard(record)
         return record
 
     def get(self, id_or_prefix: str) -> ArtifactRecord:

@@ -43,6 +43,12 @@ def _index_report(report, done: str, skipped: str, as_json: bool) -> None:
         typer.echo(f"{done}: {report.artifacts} artifacts, {report.runs} runs in {report.seconds:.2f} s")
         for line in _listed(skipped, report.corrupt):
             typer.echo(line)
+        kept = getattr(report, "kept", [])
+        for line in _listed("catalogue rows kept over an unsealed or failing sidecar", kept):
+            typer.echo(line)
+        fresh = sorted(set(getattr(report, "unsealed", [])) - set(kept))
+        for line in _listed("indexed from unsealed sidecars (metadata not protected by a seal)", fresh):
+            typer.echo(line)
     if report.corrupt:
         raise typer.Exit(1)
 

@@ -336,6 +336,10 @@ def test_verify_reports_unsealed_sidecars_and_strict_fails_on_them(ws):
         doc.pop(SEAL_FIELD)
 
     edit_sidecar(workspace.api.store, ids["pt"], as_format_1)
+    # A sidecar from before sealing, in a catalogue that never saw it sealed (indexed afresh): an
+    # unsealed sidecar the catalogue knew sealed is a downgrade, refused (test_nothing_lost.py).
+    os.remove(os.path.join(workspace.home, "catalogue.duckdb"))
+    ArtifactsAPI(workspace.home)
     result = verify(workspace.home, "--all")
     assert result.exit_code == 0, result.output
     assert "unsealed" in result.output and ids["pt"] in result.output

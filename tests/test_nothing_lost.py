@@ -4,6 +4,7 @@ or the console entry point in a subprocess where the exit status and stderr line
 
 import json
 import os
+import re
 import stat
 from pathlib import Path
 
@@ -14,6 +15,8 @@ from typer.testing import CliRunner
 
 from artifacts import store as store_mod
 from artifacts.api import ArtifactsAPI
+from artifacts.errors import CorruptArtifact
+from artifacts.records import SEAL_FIELD
 from flows.cli import app
 
 SHAPES = {"blocks.0.attn.weight": (6, 4), "blocks.1.mlp.weight": (3, 6)}
@@ -155,3 +158,68 @@ def test_a_member_that_grows_while_it_is_copied_is_refused(tmp_path, monkeypatch
     with pytest.raises(ValueError, match="log.txt .* changed while it was being stored"):
         store.put_dir(folder, "dataset", "d")
     assert list(store.iter_ids()) == []
+
+
+# ---------------------------------------------------------------------------- 2: a stripped seal
+def _downgrade(store, artifact_id: str, change) -> None:
+    """Strip the seal, write `format: 1` and edit: what an old sidecar looks like, with forged metadata."""
+    path = store.sidecar_path(artifact_id)
+    doc = json.loads(Path(path).read_text())
+    doc.pop(SEAL_FIELD)
+    doc["format"] = 1
+    change(doc)
+    Path(path).write_text(json.dumps(doc, indent=1))
+
+
+@pytest.fixture
+def downgraded(tmp_path):
+    """θ_pt -> child (role init); then the child's sidecar is downgraded with its edge dropped."""
+    home = tmp_path / "home"
+    api = ArtifactsAPI(str(home))
+    pt = api.register_json({"w": 1}, "checkpoint", "pt").id
+    child = api.register_json({"w": 2}, "checkpoint", "ft", {"lr": 0.1}, parents=[(pt, "init")]).id
+    _downgrade(api.store, child, lambda d: d.update(parents=[], name="forged", config={"lr": 9}))
+    return home, pt, child
+
+
+def test_a_stripped_seal_is_refused_where_the_catalogue_knew_it_sealed(downgraded):
+    home, pt, child = downgraded
+    api = ArtifactsAPI(str(home))
+    with pytest.raises(CorruptArtifact, match=f"{child}.*seal was stripped"):
+        api.get(child)
+    shown = cli(home, "artifacts", "show", child)
+    assert shown.exit_code != 0 and "forged" not in shown.output
+    with pytest.raises(CorruptArtifact, match=child):
+        api.path(child)
+    with pytest.raises(CorruptArtifact, match=child):
+        api.register_json({"g": 1}, "report", "g", parents=[(child, "of")])
+
+
+def test_a_rebuild_keeps_the_catalogue_row_over_a_stripped_seal(downgraded):
+    home, pt, child = downgraded
+    api = ArtifactsAPI(str(home))
+    report = api.rebuild()
+    assert child in report.corrupt and child in report.kept
+    assert api.query("SELECT parent, child, role FROM edges").values.tolist() == [[pt, child, "init"]]
+    assert api.query("SELECT name FROM artifacts WHERE id = ?", [child])["name"][0] == "ft"
+    again = api.rebuild()  # the catalogue still knows it was sealed: a second rebuild trusts it no more
+    assert child in again.kept and api.query("SELECT count(*) n FROM edges")["n"][0] == 1
+    result = cli(home, "catalogue", "rebuild")
+    assert result.exit_code == 1 and child in result.output and "kept" in result.output
+
+
+def test_verify_fails_on_a_stripped_seal_and_names_unsealed_records(downgraded, tmp_path):
+    home, pt, child = downgraded
+    result = cli(home, "verify", "--all")
+    assert result.exit_code == 1, result.output
+    assert re.search(rf"CORRUPT\s+{child}.*seal was stripped", result.output), result.output
+    # A record the catalogue never saw sealed (a genuinely old one) is reported as unsealed, by id.
+    api = ArtifactsAPI(str(home))
+    old = api.store.put_bytes(b"old", "checkpoint", "old").id  # not indexed yet
+    _downgrade(api.store, old, lambda d: None)
+    result = cli(home, "verify", old)
+    assert result.exit_code == 0 and re.search(rf"UNSEALED\s+{old}", result.output), result.output
+    assert cli(home, "verify", "--strict", old).exit_code == 1
+    report = api.rebuild()  # indexed from the unsealed sidecar, and listed as such
+    assert old in report.unsealed and old not in report.kept
+    assert api.catalogue.recorded_sealed(old) is False and api.catalogue.recorded_sealed(pt) is True
