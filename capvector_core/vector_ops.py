@@ -1,7 +1,8 @@
 """Streaming capability-vector arithmetic on safetensors checkpoints: `extract`, `merge`, `stats`.
 
-All three walk the checkpoints tensor by tensor (memory bounded by a few tensors), so they work on any
-safetensors checkpoint, including a sharded Hugging Face one. Conventions:
+All three walk the checkpoints tensor by tensor, each tensor in pieces of `CHUNK_BYTES` (memory bounded
+by a few pieces, whatever the tensors' size), so they work on any safetensors checkpoint, including a
+sharded Hugging Face one. Conventions:
 - float16/bfloat16 are computed in float32 and written back in their own dtype (float64 stays float64),
   rounded to nearest even; a merge term α·vector is rounded before it is added (as `base + α * vector`
   is in torch or numpy);
@@ -723,6 +724,7 @@ def stats(
 
     Rows per float tensor, per group (the first `group_depth` dotted components of the name) and one
     overall row; group values are exact aggregates (sums of squares and dot products), not averages.
+    Tensors are read in pieces of about `CHUNK_BYTES`, so memory stays a few of those whatever their size.
     """
     v = Checkpoint(vector)
     names = [n for n in select_names(v.keys(), include, exclude) if _is_float(v.specs[n])]
@@ -740,21 +742,9 @@ def stats(
     fields = ("numel", "sq", "bsq", "dot", "rsq", "agree", "both")
     acc: dict[tuple[str, str], dict[str, float]] = {}
     rows = []
+    buffers: dict[str, np.ndarray] = {}
     for n in names:
-        g = _float64(v, n)
-        if not _all_finite(g):
-            raise VectorOpError(f"NaN or Inf in tensor {n!r} of vector")
-        s = dict.fromkeys(fields, 0.0)
-        s["numel"], s["sq"] = g.size, float(g @ g)
-        if "base" in others:
-            w = _float64(others["base"], n)
-            s["bsq"] = float(w @ w)
-        if "reference_vector" in others:
-            r = _float64(others["reference_vector"], n)
-            s["rsq"], s["dot"] = float(r @ r), float(g @ r)
-            sg, sr = np.sign(g), np.sign(r)
-            both = (sg != 0) & (sr != 0)
-            s["both"], s["agree"] = float(both.sum()), float(((sg == sr) & both).sum())
+        s = _tensor_sums(n, v, others, buffers)
         rows.append(_row("tensor", n, s, others))
         for key in (("group", group_of(n, group_depth)), ("all", "*")):
             tot = acc.setdefault(key, dict.fromkeys(fields, 0.0))
@@ -764,9 +754,49 @@ def stats(
     return rows
 
 
-def _float64(ckpt: Checkpoint, name: str) -> np.ndarray:
-    dtype = ckpt.specs[name].dtype
-    return _widen(ckpt.read_bytes(name).view(STORAGE[dtype]), dtype).astype(np.float64, copy=False)
+def _tensor_sums(
+    name: str, vector: Checkpoint, others: dict[str, Checkpoint], buffers: dict[str, np.ndarray]
+) -> dict[str, float]:
+    """One tensor's sums for `stats`, streamed in pieces of about `CHUNK_BYTES` (per input, whatever its
+    dtype): memory does not grow with the tensor. Each piece is widened to float64 and its sums (in
+    float64) are added up in Python floats."""
+    ckpts = {"vector": vector, **others}
+    item = max(c.specs[name].itemsize for c in ckpts.values())
+    step = max(1, CHUNK_BYTES // item)
+    s = dict.fromkeys(("numel", "sq", "bsq", "dot", "rsq", "agree", "both"), 0.0)
+    numel = vector.specs[name].nbytes // vector.specs[name].itemsize
+    s["numel"] = numel
+    for i in range(0, numel, step):
+        j = min(i + step, numel)
+        g = _float64_chunk(vector, name, i, j, buffers, "vector")
+        if not _all_finite(g):
+            raise VectorOpError(f"NaN or Inf in tensor {name!r} of vector")
+        s["sq"] += float(g @ g)
+        if "base" in others:
+            w = _float64_chunk(others["base"], name, i, j, buffers, "base")
+            s["bsq"] += float(w @ w)
+        if "reference_vector" in others:
+            r = _float64_chunk(others["reference_vector"], name, i, j, buffers, "reference_vector")
+            s["rsq"] += float(r @ r)
+            s["dot"] += float(g @ r)
+            sg, sr = np.sign(g), np.sign(r)
+            both = (sg != 0) & (sr != 0)
+            s["both"] += float(np.count_nonzero(both))
+            s["agree"] += float(np.count_nonzero((sg == sr) & both))
+    return s
+
+
+def _float64_chunk(
+    ckpt: Checkpoint, name: str, begin: int, end: int, buffers: dict[str, np.ndarray], role: str
+) -> np.ndarray:
+    """Elements [begin, end) of one tensor as float64, read into a buffer reused from piece to piece."""
+    spec = ckpt.specs[name]
+    nbytes = (end - begin) * spec.itemsize
+    buf = buffers.get(role)
+    if buf is None or buf.size < nbytes:
+        buf = buffers[role] = np.empty(max(nbytes, CHUNK_BYTES), np.uint8)
+    raw = _read(spec.file, None, spec.begin + begin * spec.itemsize, buf[:nbytes])
+    return _widen(raw.view(STORAGE[spec.dtype]), spec.dtype).astype(np.float64, copy=False)
 
 
 def _row(level: str, name: str, s: dict[str, float], others: dict) -> VectorStat:
