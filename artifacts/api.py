@@ -9,15 +9,15 @@ catalogue row. The store is the truth, so the catalogue may fall behind it but n
 - `capvector catalogue sync|rebuild|verify|gc` do the same on demand.
 """
 
+import json
 import logging
 import os
 import threading
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import duckdb
-import pandas as pd
 from pydantic import BaseModel
 
 from artifacts import home as home_mod
@@ -45,6 +45,9 @@ from artifacts.records import (
 )
 from artifacts.store import ArtifactStore, ParentLike
 
+if TYPE_CHECKING:
+    import pandas as pd
+
 log = logging.getLogger(__name__)
 
 # Once a write met a locked catalogue, later writes of the same object wait this long, not max_wait_s:
@@ -56,13 +59,17 @@ CATCH_UP_WAIT_S = 5.0
 
 
 class GcReport(BaseModel):
-    """What `gc` removed: store leftovers, catalogue rows of artifacts and runs no longer in the store,
-    and snapshot folders of killed readers."""
+    """What `gc` did: store leftovers removed (staging), objects without a sidecar moved to quarantine
+    (`quarantined`, their new paths) or kept in place because something names them as a parent
+    (`kept`), catalogue rows of artifacts and runs no longer in the store, and snapshot folders of
+    killed readers."""
 
     store: list[str]
     rows: list[str]
     runs: list[str]
     snapshots: list[str]
+    quarantined: list[str] = []
+    kept: list[str] = []
 
 
 class ArtifactsAPI:
@@ -300,10 +307,15 @@ class ArtifactsAPI:
         self._flush()
         return self.catalogue.scores(self.store.resolve(id_or_prefix), fingerprint)
 
-    def query(self, sql: str, params: Any = None) -> pd.DataFrame:
+    def query(self, sql: str, params: Any = None) -> "pd.DataFrame":
         """Read-only SQL over the catalogue tables (on a snapshot: a long query holds no writer off)."""
         self._flush()
         return self.catalogue.query(sql, params)
+
+    def query_rows(self, sql: str, params: Any = None) -> tuple[list[str], list[tuple]]:
+        """`query` without pandas: (column names, rows as tuples)."""
+        self._flush()
+        return self.catalogue.query_rows(sql, params)
 
     # ---------------------------------------------------------------- maintenance
     def rebuild(self) -> RebuildReport:
@@ -326,20 +338,59 @@ class ArtifactsAPI:
         return self.catalogue.verify(self.store)
 
     def gc(self, older_than_s: float = 3600.0) -> GcReport:
-        """The store's gc (staging leftovers, uncommitted objects older than `older_than_s`), plus the
-        catalogue rows of artifacts and runs no longer in the store, and stale snapshot folders."""
+        """The store's gc (staging leftovers removed; objects without a sidecar quarantined, never
+        deleted), plus the catalogue rows of artifacts and runs no longer in the store, and stale
+        snapshot folders.
+
+        Nothing that the catalogue or any sidecar names as a parent is touched: not its object (left in
+        place when its sidecar is lost) and not its row (its kind, name and config may be all that is
+        left of its metadata). A quarantined object gets its catalogue row (and edges) written beside
+        it (`<id>.catalogue-row.json`) before the row leaves the catalogue."""
         self._flush()
-        removed = self.store.gc(older_than_s)
+        parents = set(self.query("SELECT DISTINCT parent FROM edges")["parent"].tolist())
+        result = self.store.gc(older_than_s, referenced=parents)
+        for dest in result.quarantined:
+            self._save_row_beside(dest)
         report = self.catalogue.verify(self.store)
-        gone = [i for i in report.rows_without_objects if not self.store.exists(i)]
+        parents |= self.store.referenced_parents()
+        gone = [
+            i
+            for i in report.rows_without_objects
+            if i not in parents
+            and not self.store.exists(i)
+            and not self.store.fs.exists(self.store.object_path(i))
+        ]
         run_ids = set(report.rows_without_runs) - {r.flow_run_id for r in self.store.iter_runs()}
         self.catalogue.remove_rows(gone, sorted(run_ids))
+        if result.quarantined or result.kept:
+            log.warning(
+                "gc: %d object(s) without a sidecar moved to quarantine, %d kept as named parents",
+                len(result.quarantined),
+                len(result.kept),
+            )
         return GcReport(
-            store=removed,
+            store=result.removed,
             rows=gone,
             runs=sorted(run_ids),
             snapshots=self.catalogue.remove_snapshots(older_than_s),
+            quarantined=result.quarantined,
+            kept=result.kept,
         )
+
+    def _save_row_beside(self, dest: str) -> None:
+        """The catalogue's row of a quarantined object, written next to it (its only metadata left)."""
+        artifact_id = os.path.basename(dest)
+        try:
+            frame = self.query("SELECT * FROM artifacts WHERE id = ?", [artifact_id])
+            edges = self.query("SELECT parent, role, attrs FROM edges WHERE child = ?", [artifact_id])
+        except (ArtifactError, duckdb.Error) as e:
+            log.warning("catalogue row of quarantined %s not saved: %s", artifact_id, e)
+            return
+        if frame.empty:
+            return
+        doc = {"artifact": frame.to_dict(orient="records")[0], "parents": edges.to_dict(orient="records")}
+        with self.store.fs.open(dest + ".catalogue-row.json", "w") as f:
+            f.write(json.dumps(doc, indent=1, default=str))
 
 
 def _parent_id(p: ParentLike) -> str:

@@ -5,9 +5,12 @@ Layout under the root:
     objects/<id[:2]>/<id>.json         the sidecar (ArtifactRecord); written last = the commit point
     tmp/<uuid>/                        staging; a killed writer leaves garbage only here
     runs/<flow_run_id>.json            flow-run records, so the catalogue can be rebuilt from the store
+    quarantine/<time>/<id>/            objects without a sidecar that `gc` moved aside (never deleted)
 
-An artifact is visible only once its sidecar exists; an object directory without one is garbage that
-`gc` removes. Ids: sha256 of the file bytes (so `sha256sum` agrees) or, for a directory, of its
+An artifact is visible only once its sidecar exists; an object directory without one is invisible.
+`gc` never deletes one: a write killed before its sidecar and an artifact whose sidecar was lost look
+alike, so it is moved to quarantine/ (or, when something names it as a parent, left in place).
+Ids: sha256 of the file bytes (so `sha256sum` agrees) or, for a directory, of its
 canonical manifest (see hashing.manifest_bytes).
 
 Integrity: nothing wrong is ever served under a trusted id.
@@ -323,6 +326,15 @@ def _expect(hashes: Mapping[str, str], entries: list[tuple[str, int, str]]) -> N
             raise ValueError(
                 f"{rel} changed since it was hashed (sha256 {digest[:12]}…, not {hashes[rel][:12]}…)"
             )
+
+
+class GcResult(BaseModel):
+    """What the store's gc did: staging leftovers removed; objects without a sidecar moved aside
+    (their new paths) or, being named as a parent, kept in place (their ids)."""
+
+    removed: list[str] = []
+    quarantined: list[str] = []
+    kept: list[str] = []
 
 
 class ArtifactStore:
@@ -1144,23 +1156,60 @@ class ArtifactStore:
             yield RunRecord.model_validate_json(self.fs.cat_file(p))
 
     # ---------------------------------------------------------------- garbage
-    def gc(self, older_than_s: float = 3600.0) -> list[str]:
-        """Remove staging leftovers and uncommitted objects (no sidecar) older than `older_than_s`.
+    def referenced_parents(self) -> set[str]:
+        """Every id that some sidecar names as a parent, read from the raw JSON (a sidecar that fails
+        its seal still names its parents: gc must not delete what it may point at)."""
+        out: set[str] = set()
+        for artifact_id in self.iter_ids():
+            try:
+                doc = json.loads(self.fs.cat_file(self.sidecar_path(artifact_id)))
+                out.update(
+                    str(p["id"]) for p in doc.get("parents") or [] if isinstance(p, dict) and "id" in p
+                )
+            except (OSError, ValueError, AttributeError, TypeError):
+                continue
+        return out
 
-        The age guard keeps gc from deleting a write that another process is committing right now.
+    def gc(self, older_than_s: float = 3600.0, referenced: Iterable[str] = ()) -> "GcResult":
+        """Remove staging leftovers (never committed) older than `older_than_s`; move committed-looking
+        objects without a sidecar aside, never delete them.
+
+        An object directory without a sidecar is a write killed between its rename and its sidecar, or
+        an artifact whose sidecar was lost: its bytes may be the only copy. One that a sidecar
+        (`referenced_parents`) or the caller (`referenced`: the catalogue's edges) names as a parent
+        is left where it is (`kept`); any other is moved to `quarantine/<time>/<id>` under the store
+        root (`quarantined`), for a person to inspect, restore or delete.
+        The age guard keeps gc from touching a write that another process is committing right now.
         """
         cutoff = time.time() - older_than_s
-        removed = []
-        candidates = list(self.fs.ls(self._p("tmp"), detail=False)) if self.fs.exists(self._p("tmp")) else []
+        result = GcResult()
+        parents = set(referenced) | self.referenced_parents()
+        if self.fs.exists(self._p("tmp")):
+            for p in self.fs.ls(self._p("tmp"), detail=False):
+                if self._age_ts(p) <= cutoff:
+                    self._discard(p)
+                    result.removed.append(p)
+        stamp = datetime.now().strftime("%Y%m%dT%H%M%S") + f"-{uuid.uuid4().hex[:6]}"
         for shard in self.fs.ls(self._p("objects"), detail=False):
             for p in self.fs.ls(shard, detail=False):
-                if not p.endswith(".json") and not self.fs.exists(p + ".json"):
-                    candidates.append(p)
-        for p in candidates:
-            if self._age_ts(p) <= cutoff:
-                self._discard(p)
-                removed.append(p)
-        return removed
+                if p.endswith(".json") or self.fs.exists(p + ".json") or self._age_ts(p) > cutoff:
+                    continue
+                artifact_id = posixpath.basename(p.rstrip("/"))
+                if len(artifact_id) != 64 or not PREFIX_RE.match(artifact_id):  # a sidecar's temp file
+                    self._discard(p)
+                    result.removed.append(p)
+                    continue
+                if artifact_id in parents:
+                    result.kept.append(artifact_id)
+                    continue
+                dest = self._p("quarantine", stamp, artifact_id)
+                self.fs.makedirs(posixpath.dirname(dest), exist_ok=True)
+                if self.local:
+                    os.rename(p, dest)
+                else:
+                    self.fs.mv(p, dest, recursive=True)
+                result.quarantined.append(dest)
+        return result
 
     def _age_ts(self, path: str) -> float:
         if self.local:

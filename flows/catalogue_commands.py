@@ -11,6 +11,8 @@ from typing import Annotated, Any
 
 import typer
 
+from flows.home import resolve_home
+
 catalogue_app = typer.Typer(
     no_args_is_help=True,
     help="Keep the catalogue (an index, rebuildable) in step with the artifact store (the truth).",
@@ -22,9 +24,8 @@ JsonOption = Annotated[bool, typer.Option("--json", help="print machine-readable
 
 def _api(home: str | None):
     from artifacts.api import ArtifactsAPI
-    from flows.cli import _home
 
-    return ArtifactsAPI(_home(home), catch_up=False)
+    return ArtifactsAPI(resolve_home(home), catch_up=False)
 
 
 def _echo_json(data: Any) -> None:
@@ -100,7 +101,8 @@ def gc(
     home: HomeOption = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Remove store leftovers (staging, uncommitted objects) and rows of artifacts no longer stored.
+    """Remove store leftovers (staging) and rows of artifacts no longer stored; quarantine objects
+    without a sidecar (never deleted; left in place when something names them as a parent).
 
     Also the rows of run records no longer in the store and snapshot folders of killed readers."""
     report = _api(home).gc(older_than)
@@ -109,6 +111,8 @@ def gc(
         return
     for title, items in [
         ("store leftovers removed", report.store),
+        ("objects without a sidecar moved to quarantine (not deleted)", report.quarantined),
+        ("objects without a sidecar kept in place (named as a parent)", report.kept),
         ("catalogue rows removed (artifact no longer in the store)", report.rows),
         ("run rows removed", report.runs),
         ("reader snapshots removed", report.snapshots),

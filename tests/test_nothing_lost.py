@@ -223,3 +223,38 @@ def test_verify_fails_on_a_stripped_seal_and_names_unsealed_records(downgraded, 
     report = api.rebuild()  # indexed from the unsealed sidecar, and listed as such
     assert old in report.unsealed and old not in report.kept
     assert api.catalogue.recorded_sealed(old) is False and api.catalogue.recorded_sealed(pt) is True
+
+
+# ---------------------------------------------------------------------------- 6: gc deletes nothing named
+def test_gc_never_deletes_a_parent_whose_sidecar_was_lost(tmp_path):
+    home = tmp_path / "home"
+    api = ArtifactsAPI(str(home))
+    pt = api.register_json({"pt": 0}, "checkpoint", "pt")
+    children = [
+        api.register_json({"w": i}, "checkpoint", f"c{i}", parents=[(pt.id, "init")]).id for i in range(6)
+    ]
+    weights = Path(api.store.path(pt.id))
+    os.remove(api.store.sidecar_path(pt.id))  # θ_pt's sidecar is lost
+
+    result = cli(home, "catalogue", "gc", "--older-than", "0")
+    assert result.exit_code == 0, result.output
+    assert weights.read_bytes() == json.dumps({"pt": 0}, sort_keys=True, indent=1).encode()
+    assert "kept in place (named as a parent): 1" in result.output and pt.id in result.output
+    api = ArtifactsAPI(str(home))
+    assert api.query("SELECT name FROM artifacts WHERE id = ?", [pt.id])["name"].tolist() == ["pt"]
+    assert len(api.query("SELECT * FROM edges WHERE parent = ?", [pt.id])) == len(children)
+
+
+def test_gc_quarantines_an_orphan_without_a_sidecar_instead_of_deleting_it(tmp_path):
+    home = tmp_path / "home"
+    api = ArtifactsAPI(str(home))
+    lone = api.register_json({"w": 7}, "checkpoint", "lone")
+    os.remove(api.store.sidecar_path(lone.id))
+    report = ArtifactsAPI(str(home)).gc(older_than_s=0)
+    assert [os.path.basename(p) for p in report.quarantined] == [lone.id] and report.kept == []
+    moved = Path(report.quarantined[0])
+    assert moved.is_relative_to(home) and (moved / "data.json").read_bytes() == b'{\n "w": 7\n}'
+    saved = json.loads(Path(str(moved) + ".catalogue-row.json").read_text())
+    assert saved["artifact"]["name"] == "lone"  # its metadata, kept beside it before its row goes
+    assert report.rows == [lone.id]
+    assert not Path(api.store.object_path(lone.id)).exists()
