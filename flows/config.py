@@ -18,6 +18,7 @@ from capvector_core.evaluation import EvalConfig
 from capvector_core.lora import LoraConfig
 from capvector_core.lora_sp import LoraSPConfig
 from capvector_core.metaworld_tasks import validate_task_names
+from capvector_core.obs_transforms import ObsTransformConfig
 from capvector_core.policies import L1ChunkConfig
 from capvector_core.policy import AnyPolicyConfig
 from capvector_core.trainer import AuxConfig, TrainConfig
@@ -89,6 +90,12 @@ class DataSettings(BaseModel):
     episodes_extraction: int = Field(10, ge=1)
     episodes_downstream: int = Field(10, ge=1)
     workers: int = Field(2, ge=1)
+    obs_transform: ObsTransformConfig = Field(
+        default_factory=ObsTransformConfig,
+        description="fixed, seeded map of the state the policy sees (state mode): the policy applies it, "
+        "so demos, training and evaluation share it; `random_features` hides positions the auxiliary "
+        "targets carry (a positive control for the auxiliary objective)",
+    )
 
 
 class EvalSettings(BaseModel):
@@ -145,6 +152,18 @@ class PipelineConfig(BaseModel):
             raise ValueError(
                 f"policy.obs_mode ({self.policy.obs_mode}) differs from data.obs_mode ({self.data.obs_mode})"
             )
+        if self.policy.obs_transform != self.data.obs_transform:
+            if self.policy.obs_transform.active:
+                raise ValueError(
+                    "policy.obs_transform differs from data.obs_transform: set data.obs_transform only "
+                    "(the pipeline gives it to the policy)"
+                )
+            if self.data.obs_transform.active and self.data.obs_mode != "state":
+                raise ValueError(
+                    f"data.obs_transform {self.data.obs_transform.kind!r} maps the state: data.obs_mode "
+                    f"must be 'state', got {self.data.obs_mode!r}"
+                )
+            self.policy = self.policy.model_copy(update={"obs_transform": self.data.obs_transform})
         if self.data.obs_mode == "pixels" and self.policy.image_size != self.data.image_size:
             raise ValueError(
                 f"policy.image_size ({self.policy.image_size}) differs from data.image_size "

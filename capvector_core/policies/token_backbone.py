@@ -34,6 +34,7 @@ from torch import nn
 
 from capvector_core import tokenizer
 from capvector_core.batching import DemoBatcher
+from capvector_core.obs_transforms import ObsTransform, ObsTransformConfig
 from capvector_core.policy import Batch, Batcher, FeatureSpec, Policy, PolicyConfig
 
 STATE_GROUPS: dict[str, tuple[int, int]] = {
@@ -61,6 +62,10 @@ class TokenBackboneConfig(PolicyConfig):
     state_dim: int = Field(39, gt=0)
     proprio_dim: int = Field(4, gt=0)
     action_dim: int = Field(4, gt=0)
+    obs_transform: ObsTransformConfig = Field(
+        default_factory=ObsTransformConfig,
+        description="fixed map of the standardized state before the state tokens (capvector_core.obs_transforms)",
+    )
 
     @field_validator("stem_channels")
     @classmethod
@@ -80,7 +85,9 @@ class TokenBackboneConfig(PolicyConfig):
                     f"image_size ({self.image_size}) must be divisible by 2**len(stem_channels) = {factor} "
                     "(each stem conv halves the image)"
                 )
-        if self.state_tokens == "grouped" and self.state_dim != 39:
+        if self.obs_transform.active and self.obs_mode != "state":
+            raise ValueError(f"obs_transform {self.obs_transform.kind!r} maps the state: obs_mode must be 'state'")
+        if self.state_tokens == "grouped" and self.state_dim != 39 and not self.obs_transform.active:
             raise ValueError(
                 f"state_dim ({self.state_dim}) must be 39 with state_tokens='grouped' (Meta-World layout); "
                 "use state_tokens='single' for other state sizes"
@@ -95,6 +102,8 @@ class TokenBackboneConfig(PolicyConfig):
     def n_obs_tokens(self) -> int:
         if self.obs_mode == "pixels":
             return self.grid_size**2
+        if self.obs_transform.active:
+            return self.obs_transform.tokens
         return len(STATE_GROUPS) if self.state_tokens == "grouped" else 1
 
     @property
@@ -260,17 +269,27 @@ class VisionEncoder(nn.Module):
         return self.proj(grid.flatten(2).transpose(1, 2))
 
 
+def _state_groups(config: TokenBackboneConfig) -> dict[str, tuple[int, int]]:
+    """Token name -> slice of the (transformed) state: the semantic groups, one token, or equal
+    slices of a random-feature map (its features are exchangeable, so any split is as good)."""
+    transform = config.obs_transform
+    if transform.active:
+        width = transform.out_dim // transform.tokens
+        return {f"features{i}": (i * width, (i + 1) * width) for i in range(transform.tokens)}
+    return dict(STATE_GROUPS) if config.state_tokens == "grouped" else {"all": (0, config.state_dim)}
+
+
 class StateEncoder(nn.Module):
     def __init__(self, config: TokenBackboneConfig):
         super().__init__()
-        self.groups = (
-            dict(STATE_GROUPS) if config.state_tokens == "grouped" else {"all": (0, config.state_dim)}
-        )
+        self.transform = ObsTransform(config.obs_transform, config.state_dim)
+        self.groups = _state_groups(config)
         self.proj = nn.ModuleDict(
             {name: nn.Linear(b - a, config.d_model) for name, (a, b) in self.groups.items()}
         )
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
+        state = self.transform(state)
         return torch.stack([self.proj[name](state[:, a:b]) for name, (a, b) in self.groups.items()], dim=1)
 
 
