@@ -18,6 +18,7 @@ from rich.table import Table
 
 from artifacts.errors import ArtifactError
 from flows.catalogue_commands import catalogue_app
+from flows.home import resolve_home, set_root_home
 from flows.lineage_views import as_mermaid, as_tree
 from flows.verify_command import verify
 
@@ -39,7 +40,6 @@ SetOption = Annotated[list[str] | None, typer.Option("--set", help="override a c
 
 
 class State:
-    home: str | None = None
     debug: bool = os.environ.get("CAPVECTOR_DEBUG", "").lower() not in ("", "0", "false")
 
 
@@ -59,7 +59,7 @@ def main_options(
     ] = False,
 ) -> None:
     """capvector: capability vectors for VLA policies on Meta-World, with lineage."""
-    State.home = home
+    set_root_home(home)
     State.debug = State.debug or debug
     if State.debug:
         os.environ["CAPVECTOR_DEBUG"] = "1"  # step workers inherit it
@@ -69,17 +69,11 @@ def main_options(
         start_run_server()  # boots while the command imports torch and the flows
 
 
-def _home(home: str | None) -> str:
-    from artifacts.home import default_home
-
-    return home or State.home or default_home()
-
-
 def _workspace(home: str | None):
     """A fresh Workspace per call: opening it is what catches the catalogue up with the store."""
     from tasks.workspace import Workspace
 
-    return Workspace(_home(home))
+    return Workspace(resolve_home(home))
 
 
 def _print_json(data: Any) -> None:
@@ -102,7 +96,7 @@ def _preflight(command: str, home: str | None) -> None:
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
         slug = "-".join(command.replace("--preset", "").split())
         os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
-    emit(f"capvector {command}: home {_home(home)}, log {os.environ[LOG_FILE_ENV]}")
+    emit(f"capvector {command}: home {resolve_home(home)}, log {os.environ[LOG_FILE_ENV]}")
     quiet_failed_run_logs()  # main() prints a failing run's error, in one line
 
 
@@ -136,7 +130,7 @@ def run(
     from flows.pipeline import pipeline
 
     config = load_config(preset, overrides)
-    home = _home(home)
+    home = resolve_home(home)
     _preflight(f"run --preset {preset}", home)
     ids = pipeline(config.model_dump(mode="json"), home)
     if as_json:
@@ -183,7 +177,7 @@ def evaluate(
     task_runner = _runner(runner, workers)
     if task_runner is not None:
         flow_fn = evaluate_flow.with_options(task_runner=task_runner)
-    result = flow_fn(_home(home), checkpoints, config.model_dump(mode="json"))
+    result = flow_fn(resolve_home(home), checkpoints, config.model_dump(mode="json"))
     from artifacts.scores import read_scores
 
     scores = {s.evaluation_id: s for s in read_scores(_workspace(home).api, evaluations=result.values())}
@@ -209,7 +203,7 @@ def reevaluate(
     from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
 
     _preflight("reevaluate", home)
-    changes = reevaluate_flow(_home(home), query or DEFAULT_SELECTION)
+    changes = reevaluate_flow(resolve_home(home), query or DEFAULT_SELECTION)
     if as_json:
         _print_json(changes)
     else:
@@ -232,7 +226,7 @@ def study(
 
     config = load_study(preset, overrides)
     _preflight(f"study --preset {preset}", home)
-    result = study_flow(config.model_dump(mode="json"), _home(home))
+    result = study_flow(config.model_dump(mode="json"), resolve_home(home))
     if report is not None:
         report.write_text(result["markdown"])
     if as_json:
@@ -255,7 +249,7 @@ def sweep(
 
     config = load_config(preset, overrides)
     _preflight(f"sweep --preset {preset}", home)
-    result = sweep_flow(config.model_dump(mode="json"), _home(home))
+    result = sweep_flow(config.model_dump(mode="json"), resolve_home(home))
     if as_json:
         _print_json(result)
     else:
@@ -276,9 +270,9 @@ def schedule(
     """Serve the `reevaluate` deployment on a cron (needs PREFECT_API_URL for a persistent server)."""
     from flows.schedules import build_deployment, serve_deployment
 
-    deployment = build_deployment(cron, _home(home), query, name)
+    deployment = build_deployment(cron, resolve_home(home), query, name)
     if check:
-        console.print(f"deployment {name!r}: cron {cron!r}, home {_home(home)}")
+        console.print(f"deployment {name!r}: cron {cron!r}, home {resolve_home(home)}")
         return
     serve_deployment(deployment)
 

@@ -17,10 +17,10 @@ from typing import Annotated, Any
 import typer
 
 from artifacts.records import IntegrityVerdict
+from flows.home import resolve_home
 
 
 def verify(
-    ctx: typer.Context,
     ids: Annotated[list[str] | None, typer.Argument(help="artifact ids or unique prefixes")] = None,
     all_: Annotated[bool, typer.Option("--all", help="every artifact in the store")] = False,
     strict: Annotated[
@@ -31,14 +31,12 @@ def verify(
 ) -> None:
     """Re-hash artifacts against their ids and check their sealed metadata; exit 1 naming each bad id."""
     from artifacts.api import ArtifactsAPI
-    from artifacts.home import default_home
 
     if bool(ids) == all_:
         raise typer.BadParameter("give artifact ids or --all (not both)")
-    # `capvector --home H verify` sets the home on the root command (flows.cli.main_options).
     # catch_up=False: a check reports, it does not index on open (which could index a forgery before
     # the comparison with the catalogue below sees it).
-    api = ArtifactsAPI(home or ctx.find_root().params.get("home") or default_home(), catch_up=False)
+    api = ArtifactsAPI(resolve_home(home), catch_up=False)
     targets = sorted(api.store.iter_ids()) if all_ else list(ids or [])
     indexed = _catalogue_lineage(api)
     progress = _Progress(len(targets), enabled=all_)
