@@ -97,6 +97,12 @@ class ArtifactsAPI:
         self._busy = False
         self._lock = threading.RLock()
         self.store.unsealed_guard = self._refuse_downgrade
+        if self.catalogue.needs_rebuild:  # an unreadable catalogue was set aside: the store is the truth
+            report = self.catalogue.rebuild(self.store)
+            self.catalogue.needs_rebuild = False
+            log.debug(
+                "catalogue rebuilt from the store: %d artifacts, %d runs", report.artifacts, report.runs
+            )
         if catch_up:
             self.catch_up()
 

@@ -1,12 +1,20 @@
 """DuckDB catalogue: an index over the store (rebuildable from it) answering lineage and score questions.
 
 Connections. DuckDB lets one process hold a database file for writing, and a reader's shared lock keeps
-writers out too (shared/reference/environment.md §6). So nothing keeps the file open: every unit of
-work opens it, does its work in one short transaction, and closes it; a lock conflict is retried with
-exponential backoff and jitter up to a bounded total wait, then reported as CatalogueBusy. Opening an
-up-to-date catalogue takes only the shared lock (the write lock only to create or migrate it). This
-module's own reads (schema check, lineage, scores) attach the file read-only to one in-memory DuckDB
-per process rather than creating a database each time (see `_attached_read`).
+writers out too (DuckDB's file locking: one read-write process, or any number of read-only ones).
+So nothing keeps the file open: every unit of work opens it, does its work in one short
+transaction, and closes it; a lock conflict is retried with exponential backoff and jitter up to a
+bounded total wait, then reported as CatalogueBusy. Opening an up-to-date catalogue takes only the
+shared lock (the write lock only to create or migrate it). This module's own reads (schema check,
+lineage, scores) attach the file read-only to one in-memory DuckDB per process rather than creating
+a database each time (see `_attached_read`).
+
+Faults. The catalogue is an index: one that cannot be read (random bytes after a disk fault, a file
+written by a DuckDB whose storage version this one cannot read) is moved aside as
+`catalogue.duckdb.corrupt-<time>-<pid>`, kept for inspection, and rebuilt from the store, with one
+line saying so. On a home this process may not write (a read-only mount, permissions) the catalogue is
+copied into a private temporary folder and worked on there: reads work, and nothing in the home is
+written.
 
 Long reads. `query` runs arbitrary read-only SQL (`capvector sql`, selections) on the file for at most
 DIRECT_READ_S; a statement still running then is interrupted and re-run on a private snapshot, copied
@@ -42,10 +50,9 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import Any, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import duckdb
-import pandas as pd
 from pydantic import BaseModel, Field
 
 from artifacts.errors import ArtifactNotFound, CatalogueBusy, CorruptArtifact, MixedFingerprints
@@ -61,6 +68,9 @@ from artifacts.records import (
     utcnow,
 )
 from artifacts.schema import ARTIFACT_COLUMNS, DATA_TABLES, MIGRATIONS, check_version, migrate
+
+if TYPE_CHECKING:  # pandas only where a DataFrame is made: the read-only CLI commands never import it
+    import pandas as pd
 
 log = logging.getLogger(__name__)
 
@@ -388,6 +398,42 @@ def _read_markers(con: duckdb.DuckDBPyConnection) -> dict[str, tuple[str | None,
     return {s: (f, t) for s, f, t in rows}
 
 
+def _unreadable(e: Exception) -> bool:
+    """A DuckDB error that says the file is not a catalogue this DuckDB can read (not a lock, not a
+    permission or a full disk, which moving the file aside would not mend)."""
+    text = str(e)
+    return isinstance(e, duckdb.SerializationException) or any(
+        s in text
+        for s in (
+            "not a valid DuckDB database file",
+            "but we can only read versions",
+            "Corrupt database file",
+            "database file is corrupt",
+        )
+    )
+
+
+def _writable(path: Path) -> bool:
+    """Whether this process may write the catalogue file (and its WAL beside it). `os.access` asks
+    the kernel, so a read-only mount says no even to root; a plain chmod does not stop root."""
+    folder_ok = os.access(path.parent, os.W_OK | os.X_OK)
+    return folder_ok and (not path.exists() or os.access(path, os.W_OK))
+
+
+def _private_copy(path: Path) -> Path:
+    """A private copy of the catalogue (and its WAL) in a temporary folder removed at exit: on a home
+    this process cannot write, catching up, migrating and reading happen there, and nothing in the
+    home is written."""
+    folder = Path(tempfile.mkdtemp(prefix="capvector-catalogue-"))
+    atexit.register(shutil.rmtree, folder, True)
+    copy = folder / path.name
+    for src, dst in [(path, copy), (path.with_name(path.name + ".wal"), folder / (path.name + ".wal"))]:
+        with contextlib.suppress(FileNotFoundError):
+            shutil.copyfile(src, dst)
+    log.info("catalogue %s is read-only here: working on a private copy, %s", path, copy)
+    return copy
+
+
 def _run_records(store: Any) -> list[RunRecord]:
     """The store's run records; none (logged) when one is unreadable: runs are bookkeeping, and a bad
     file must not keep the artifacts from being indexed (`rebuild` still fails on it)."""
@@ -417,6 +463,13 @@ class Catalogue:
     ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        # The catalogue in the home, when `path` is a private copy of it (a home this process may
+        # not write: see `_private_copy`).
+        self.home_path: Path | None = None
+        # Set when an unreadable file was moved aside: the caller rebuilds it from the store.
+        self.needs_rebuild = False
+        if not _writable(self.path):
+            self.home_path, self.path = self.path, _private_copy(self.path)
         self.max_wait_s = max_wait_s
         self.retries = 0  # lock conflicts met by this object, for tests and benchmarks
         self.migrations = list(migrations)
@@ -427,6 +480,27 @@ class Catalogue:
             self._prepare()
         except CatalogueBusy as e:
             log.warning("%s; it will be opened on first use", e)
+        except duckdb.Error as e:
+            if not _unreadable(e):
+                raise
+            self._set_aside(e)
+            self._prepare()
+
+    def _set_aside(self, error: Exception) -> None:
+        """An unreadable catalogue (random bytes from a disk fault, a file from a DuckDB that this one
+        cannot read): it is only an index, so it is moved aside for inspection and a fresh one is
+        created, to be rebuilt from the store (`needs_rebuild`). One line tells the user."""
+        stamp = datetime.now().strftime("%Y%m%dT%H%M%S")
+        aside = self.path.with_name(f"{self.path.name}.corrupt-{stamp}-{os.getpid()}")
+        wal = self.path.with_name(self.path.name + ".wal")
+        os.replace(self.path, aside)
+        if wal.exists():
+            os.replace(wal, aside.with_name(aside.name + ".wal"))
+        reason = " ".join(str(error).split())
+        where = self.home_path or self.path
+        kept = f"moved to {aside}" if self.home_path is None else "the home is read-only: left as it is"
+        log.warning("catalogue %s cannot be read (%s); %s, rebuilding it from the store", where, reason, kept)
+        self.needs_rebuild = True
 
     def _prepare(self) -> None:
         """Check (read-only, shared lock) or create/migrate (write lock) the schema; read the sync markers."""
@@ -551,6 +625,8 @@ class Catalogue:
         for table, table_rows in rows.items():
             if not table_rows:
                 continue
+            import pandas as pd
+
             df = pd.DataFrame(table_rows)
             for col in INT_COLUMNS.intersection(df.columns):
                 df[col] = df[col].astype("Int64")
@@ -841,9 +917,18 @@ class Catalogue:
 
         On the file itself for up to DIRECT_READ_S; a statement still running then is interrupted and
         run again on a private snapshot, so no query holds writers off for longer than that."""
+        return self._query(sql, params, lambda result: result.df())
+
+    def query_rows(
+        self, sql: str, params: Sequence[Any] | dict[str, Any] | None = None
+    ) -> tuple[list[str], list[tuple]]:
+        """`query` without pandas: (column names, rows as tuples of Python values)."""
+        return self._query(sql, params, lambda res: ([d[0] for d in res.description], res.fetchall()))
+
+    def _query(self, sql: str, params: Any, fetch: Callable[[duckdb.DuckDBPyConnection], Any]) -> Any:
         check_read_only(sql)
 
-        def direct(con: duckdb.DuckDBPyConnection) -> pd.DataFrame | None:
+        def direct(con: duckdb.DuckDBPyConnection) -> Any:
             fired = threading.Event()
 
             def interrupt() -> None:
@@ -853,7 +938,7 @@ class Catalogue:
             timer = threading.Timer(DIRECT_READ_S, interrupt)
             timer.start()
             try:
-                return con.execute(sql, params).df()
+                return fetch(con.execute(sql, params))
             except duckdb.InterruptException:
                 if not fired.is_set():
                     raise  # interrupted by someone else (Ctrl-C), not by the timer
@@ -862,10 +947,10 @@ class Catalogue:
                 timer.cancel()
                 timer.join()  # the connection closes next: no interrupt may reach it after that
 
-        frame = self._read(direct)
-        if frame is None:
-            frame = self._snapshot_read(lambda con: con.execute(sql, params).df())
-        return frame
+        result = self._read(direct)
+        if result is None:
+            result = self._snapshot_read(lambda con: fetch(con.execute(sql, params)))
+        return result
 
 
 @contextlib.contextmanager

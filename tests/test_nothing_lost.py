@@ -8,11 +8,13 @@ import re
 import stat
 from pathlib import Path
 
+import duckdb
 import pytest
 import torch
 from safetensors.torch import save_file
 from typer.testing import CliRunner
 
+from artifacts import catalogue as catalogue_mod
 from artifacts import store as store_mod
 from artifacts.api import ArtifactsAPI
 from artifacts.errors import CorruptArtifact
@@ -258,3 +260,84 @@ def test_gc_quarantines_an_orphan_without_a_sidecar_instead_of_deleting_it(tmp_p
     assert saved["artifact"]["name"] == "lone"  # its metadata, kept beside it before its row goes
     assert report.rows == [lone.id]
     assert not Path(api.store.object_path(lone.id)).exists()
+
+
+# ---------------------------------------------------------------------------- 7: an unreadable catalogue
+def _home_with_lineage(home: Path) -> tuple[str, str]:
+    api = ArtifactsAPI(str(home))
+    pt = api.register_json({"pt": 1}, "checkpoint", "pt").id
+    child = api.register_json({"ft": 1}, "checkpoint", "ft", parents=[(pt, "init")]).id
+    return pt, child
+
+
+def _garbage(path: Path) -> None:
+    path.write_bytes(os.urandom(1 << 16))
+
+
+@pytest.mark.parametrize("command", [["catalogue", "rebuild"], ["artifacts", "list"], ["lineage"]])
+def test_an_unreadable_catalogue_is_set_aside_and_rebuilt_from_the_store(tmp_path, command):
+    from conftest import run_cli
+
+    home = tmp_path / "home"
+    pt, child = _home_with_lineage(home)
+    catalogue = home / "catalogue.duckdb"
+    _garbage(catalogue)
+    damaged = catalogue.read_bytes()
+    args = [*command, child] if command == ["lineage"] else command
+    result = run_cli(*args, home=home, check=False, timeout=300)
+    assert result.returncode == 0, result.stderr
+    told = [line for line in result.stderr.splitlines() if "catalogue" in line]
+    assert len(told) == 1 and "rebuilding it from the store" in told[0], result.stderr
+    aside = list(home.glob("catalogue.duckdb.corrupt-*"))
+    assert len(aside) == 1 and aside[0].read_bytes() == damaged  # kept for inspection
+    if command == ["lineage"]:
+        assert "(init) checkpoint pt" in result.stdout
+    edges = ArtifactsAPI(str(home)).query("SELECT parent, child FROM edges").values.tolist()
+    assert edges == [[pt, child]]
+
+
+def test_a_catalogue_from_a_newer_duckdb_is_set_aside_and_rebuilt(tmp_path, monkeypatch, caplog):
+    """DuckDB 2.0 checksums its header, so a file of another storage version cannot be forged here;
+    the error such a file raises (from DuckDB's own wording) is raised on the first open instead."""
+    home = tmp_path / "home"
+    pt, child = _home_with_lineage(home)
+    real, calls = catalogue_mod._attached_read, []
+
+    def newer(path, fn):
+        calls.append(path)
+        if len(calls) == 1:
+            raise duckdb.IOException(
+                "IO Error: Trying to read a database file with version number 69, but we can only read "
+                "versions between 64 and 68. The database file was created with a newer version of DuckDB."
+            )
+        return real(path, fn)
+
+    monkeypatch.setattr(catalogue_mod, "_attached_read", newer)
+    api = ArtifactsAPI(str(home))
+    told = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(told) == 1 and "version number 69" in told[0] and "rebuilding it from the store" in told[0]
+    assert len(list(home.glob("catalogue.duckdb.corrupt-*"))) == 1
+    assert api.query("SELECT parent, child FROM edges").values.tolist() == [[pt, child]]
+
+
+# ---------------------------------------------------------------------------- 12: a read-only home
+def test_reading_works_on_a_home_this_process_may_not_write(tmp_path, monkeypatch):
+    """Tests run as root, where chmod does not stop writes: the kernel's answer (`os.access`, which a
+    read-only mount refuses even to root) is replaced by "not writable", and the whole home is
+    compared byte for byte before and after: nothing in it may be written."""
+    home = tmp_path / "home"
+    pt, child = _home_with_lineage(home)
+    ArtifactsAPI(str(home)).store.put_json(
+        {"late": 1}, "report", "late", parents=[(child, "of")]
+    )  # unindexed
+    before = _tree(home)
+    monkeypatch.setattr(catalogue_mod, "_writable", lambda path: False)
+    listed = cli(home, "artifacts", "list", "--json")
+    assert listed.exit_code == 0, listed.output
+    assert {r["name"] for r in json.loads(listed.output)} == {"pt", "ft", "late"}  # caught up, privately
+    lineage = cli(home, "lineage", child)
+    assert lineage.exit_code == 0 and "(init) checkpoint pt" in lineage.output
+    sql = cli(home, "sql", "SELECT count(*) AS n FROM edges", "--json")
+    assert sql.exit_code == 0 and json.loads(sql.output) == [{"n": 2}]
+    assert cli(home, "scores", pt).exit_code == 0
+    assert _tree(home) == before
