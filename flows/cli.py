@@ -1,4 +1,8 @@
-"""The `capvector` command line: run the recipe, inspect lineage and scores, operate on vectors."""
+"""The `capvector` command line: run the recipe, inspect lineage and scores, operate on vectors.
+
+Imports here stay light: `--help` and the read-only commands (sql, lineage, scores, artifacts, verify,
+catalogue) load neither torch, pandas, prefect nor metaworld; every command imports what it runs.
+"""
 
 from __future__ import annotations
 
@@ -292,13 +296,13 @@ def artifacts_list(
     if kind:
         sql += " WHERE kind = ?"
         params.append(kind)
-    frame = ws.api.query(sql + f" ORDER BY created_at DESC LIMIT {int(limit)}", params)
+    columns, rows = ws.api.query_rows(sql + f" ORDER BY created_at DESC LIMIT {int(limit)}", params)
     if as_json:
-        _print_json(frame.to_dict(orient="records"))
+        _print_json([dict(zip(columns, r, strict=True)) for r in rows])
         return
     table = Table("id", "kind", "name", "size", "created")
-    for r in frame.itertuples():
-        table.add_row(r.id[:12], r.kind, r.name, f"{r.size_bytes:,}", str(r.created_at)[:19])
+    for aid, kind_, name, size, created in rows:
+        table.add_row(aid[:12], kind_, name, f"{size:,}", str(created)[:19])
     console.print(table)
 
 
@@ -423,11 +427,27 @@ def report(
 @app.command()
 def sql(query: str, home: HomeOption = None, as_json: JsonOption = False) -> None:
     """Read-only SQL over the catalogue (anything but reading is refused)."""
-    frame = _workspace(home).api.query(query)
+    columns, rows = _workspace(home).api.query_rows(query)
     if as_json:
-        _print_json(frame.to_dict(orient="records"))
+        _print_json([dict(zip(columns, r, strict=True)) for r in rows])
     else:
-        typer.echo(frame.to_string(index=False))
+        typer.echo(text_table(columns, rows))
+
+
+def text_table(columns: list[str], rows: list[tuple]) -> str:
+    """Rows as plain aligned text (numbers to the right), whole values: no pandas, no truncation."""
+    cells = [["NULL" if v is None else str(v) for v in row] for row in rows]
+    numeric = [
+        all(isinstance(row[i], int | float) or row[i] is None for row in rows) and bool(rows)
+        for i in range(len(columns))
+    ]
+    widths = [max([len(c), *(len(row[i]) for row in cells)]) for i, c in enumerate(columns)]
+
+    def line(values: list[str]) -> str:
+        parts = [v.rjust(w) if num else v.ljust(w) for v, w, num in zip(values, widths, numeric, strict=True)]
+        return "  ".join(parts).rstrip()
+
+    return "\n".join([line(list(columns)), *(line(row) for row in cells)])
 
 
 @app.command("import")
@@ -610,8 +630,6 @@ def main() -> None:
     (anything else), nothing half-written; `--debug` (or CAPVECTOR_DEBUG=1) shows the traceback."""
     from pydantic import ValidationError
 
-    from capvector_core.safetensors_io import CheckpointError
-
     terminated = _stop_descendants_on_sigterm()
     try:
         try:
@@ -623,8 +641,7 @@ def main() -> None:
             raise
     except (
         ValueError,
-        ArtifactError,
-        CheckpointError,
+        ArtifactError,  # capvector_core's CheckpointError is a ValueError (not imported: it loads numpy)
         ValidationError,
         FileNotFoundError,
         FileExistsError,

@@ -71,8 +71,8 @@ def verify(
 def _catalogue_lineage(api: Any) -> dict[str, tuple[str, str, set[tuple[str, str]]]] | None:
     """{id: (kind, name, {(parent, role)})} as the catalogue recorded them; None when unreadable."""
     try:
-        rows = api.query("SELECT id, kind, name FROM artifacts").values.tolist()
-        edges = api.query("SELECT child, parent, role FROM edges").values.tolist()
+        _, rows = api.query_rows("SELECT id, kind, name FROM artifacts")
+        _, edges = api.query_rows("SELECT child, parent, role FROM edges")
     except Exception as e:  # a missing, locked or newer catalogue: check the store alone
         typer.echo(f"catalogue: {e}", err=True)
         return None

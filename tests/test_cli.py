@@ -512,3 +512,72 @@ def test_on_a_smoke_run_every_edge_appears_in_the_lineage_views(smoke_home):
     tree = invoke(home, "lineage", report).stdout
     for parent, _, child in edges:
         assert parent in tree and child in tree
+
+
+# The read-only commands and --help: none of these may be imported (issue 22: a query must not pay
+# for torch, pandas, prefect or metaworld).
+HEAVY = ("torch", "pandas", "prefect", "metaworld")
+LIGHT_PROBE = """
+import json, sys
+HEAVY = json.loads(sys.argv[2])
+from flows.cli import main
+imported = {}
+for args in json.loads(sys.argv[1]):
+    sys.argv = ["capvector", *args]
+    try:
+        main()
+        code = 0
+    except SystemExit as e:
+        code = e.code or 0
+    imported[" ".join(args)] = [code, sorted(m for m in HEAVY if m in sys.modules)]
+sys.stdout.flush()
+print("\\nPROBE " + json.dumps(imported))
+"""
+
+
+def test_read_only_commands_import_neither_torch_pandas_prefect_nor_metaworld(tmp_path):
+    home = tmp_path / "home"
+    api = ArtifactsAPI(str(home))
+    parent = api.register_json({"w": 1}, "checkpoint", "parent").id
+    child = api.register_json({"w": 2}, "checkpoint", "child", parents=[(parent, "init")]).id
+    commands = [
+        ["--help"],
+        ["sql", "SELECT kind, count(*) AS n FROM artifacts GROUP BY kind"],
+        ["sql", "SELECT * FROM artifacts", "--json"],
+        ["lineage", child[:12]],
+        ["lineage", parent, "--descendants", "--format", "mermaid"],
+        ["lineage", child, "--format", "json"],
+        ["scores", parent[:12]],
+        ["scores", parent, "--json"],
+        ["artifacts", "list"],
+        ["artifacts", "list", "--json"],
+        ["artifacts", "show", child[:12]],
+        ["verify", "--all"],
+        ["verify", child],
+        ["catalogue", "verify"],
+        ["sql", "--help"],
+    ]
+    env = {**os.environ, "CAPVECTOR_HOME": str(home)}
+    proc = subprocess.run(
+        [sys.executable, "-c", LIGHT_PROBE, json.dumps(commands), json.dumps(HEAVY)],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    imported = json.loads(proc.stdout.rsplit("\nPROBE ", 1)[1])
+    assert imported == {" ".join(c): [0, []] for c in commands}, proc.stderr
+    assert "child" in proc.stdout and "parent" in proc.stdout
+
+
+def test_sql_prints_whole_values_aligned_without_pandas(tmp_path):
+    from flows.cli import text_table
+
+    assert text_table(["a", "name"], [(1, "x"), (10, None)]).splitlines() == [
+        " a  name",
+        " 1  x",
+        "10  NULL",
+    ]
+    long = "f" * 64
+    assert long in text_table(["id"], [(long,)])  # pandas cut long strings short
+    home = tmp_path / "home"
+    out = CliRunner().invoke(app, ["--home", str(home), "sql", "SELECT 42 AS answer, 'x' AS s"])
+    assert out.exit_code == 0 and out.stdout.splitlines() == ["answer  s", "    42  x"], out.stdout
