@@ -337,14 +337,39 @@ def lineage(
 @app.command()
 def scores(
     artifact_id: str,
-    fingerprint: Annotated[str | None, typer.Option(help="only this protocol")] = None,
+    fingerprint: Annotated[
+        str | None,
+        typer.Option(
+            help="the evaluation protocol: test, validation, or a fingerprint (a unique prefix of 6+ "
+            "characters, e.g. the 12 in the table)"
+        ),
+    ] = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Per-task scores of the artifact and everything descended from it."""
-    rows = _workspace(home).api.scores(artifact_id, fingerprint)
+    """Per-task scores of the artifact and everything descended from it, under one protocol."""
+    from artifacts.errors import MixedFingerprints
+    from flows.protocols import SHOWN, listing, protocols, resolve
+
+    api = _workspace(home).api
+    try:
+        rows = api.scores(artifact_id, None)
+    except MixedFingerprints as e:
+        choices = protocols(api, e.fingerprints)
+        if fingerprint is None:
+            raise ValueError(
+                f"the scores of {artifact_id} come from {len(choices)} evaluation protocols, never shown "
+                f"together: {listing(choices)}; choose one with --fingerprint test, validation or a "
+                "fingerprint prefix"
+            ) from None
+        rows = api.scores(artifact_id, resolve(fingerprint, choices, artifact_id))
+    else:
+        if fingerprint is not None:  # one protocol (or none) here: the choice must still name it
+            resolve(fingerprint, protocols(api, {r.fingerprint for r in rows}), artifact_id)
+    shown = protocols(api, {r.fingerprint for r in rows})  # one (or none): never mixed
     if as_json:
-        _print_json([r.model_dump(mode="json") for r in rows])
+        names = {p.fingerprint: p.name for p in shown}
+        _print_json([{**r.model_dump(mode="json"), "protocol": names[r.fingerprint]} for r in rows])
         return
     table = Table("checkpoint", "name", "depth", "task", "success", "episodes", "protocol", "evaluated")
     for r in rows:
@@ -355,10 +380,12 @@ def scores(
             r.task,
             f"{100 * r.success_rate:.1f}%",
             str(r.n_episodes),
-            r.fingerprint[:12],
+            r.fingerprint[:SHOWN],
             str(r.evaluated_at)[:19],
         )
     console.print(table)
+    for p in shown:
+        typer.echo(f"protocol {p.describe()}")
 
 
 @app.command()

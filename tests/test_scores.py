@@ -169,3 +169,93 @@ def test_smoke_run_records_no_score_in_a_sidecar_and_readers_agree(smoke_home):
             s for s in read_scores(ws.api, checkpoints=[row.checkpoint_id]) if s.fingerprint == fingerprint
         ]
         assert row.success_rates == latest[-1].success_rates
+
+
+# --------------------------------------------------------------------------- protocols by name (issue 24)
+FP_TEST = "abcdef01" + "1" * 56
+FP_VALIDATION = "abcdef02" + "2" * 56
+
+
+def _evaluate_at(api: ArtifactsAPI, checkpoint: str, fp: str, seed_base: int, ok: bool) -> str:
+    episodes = [
+        {"task": REACH, "seed": seed_base + i, "success": ok, "steps": 5, "return": float(ok)}
+        for i in range(2)
+    ]
+    doc = {"checkpoint_id": checkpoint, "fingerprint": fp, "episodes": episodes}
+    return api.register_evaluation(doc, "e").id
+
+
+@pytest.fixture
+def two_protocols(tmp_path):
+    """Checkpoint C scored 100 % under the test protocol and 0 % under the validation one."""
+    api = ArtifactsAPI(str(tmp_path / "home"))
+    c = _checkpoint(api, "C")
+    _evaluate_at(api, c, FP_TEST, 100_000, True)
+    _evaluate_at(api, c, FP_VALIDATION, 50_000, False)
+    return api.home, c
+
+
+def test_protocol_names_are_the_seed_bases_of_capvector_core():
+    from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
+    from flows.protocols import NAMES
+
+    assert NAMES == {"test": EVAL_SEED_BASE, "validation": VALIDATION_SEED_BASE}
+
+
+def test_scores_under_several_protocols_name_them_and_the_flag(two_protocols):
+    home, c = two_protocols
+    error = cli(home, "scores", c, code=1).exception
+    assert isinstance(error, ValueError), error  # main() turns it into one line and exit 2
+    text = str(error)
+    assert "--fingerprint" in text and "fingerprint=" not in text
+    assert f"{FP_TEST[:12]} test (goal seeds from 100000, 1 evaluations)" in text
+    assert f"{FP_VALIDATION[:12]} validation (goal seeds from 50000, 1 evaluations)" in text
+
+
+@pytest.mark.parametrize(
+    ("choice", "fingerprint"),
+    [("test", FP_TEST), ("validation", FP_VALIDATION), ("TEST", FP_TEST), (FP_TEST[:12], FP_TEST),
+     (FP_VALIDATION[:8], FP_VALIDATION), (FP_VALIDATION, FP_VALIDATION), (FP_TEST[:12].upper(), FP_TEST)],
+)  # fmt: skip
+def test_fingerprint_by_name_or_unique_prefix(two_protocols, choice, fingerprint):
+    home, c = two_protocols
+    rows = json.loads(cli(home, "scores", c, "--fingerprint", choice, "--json").stdout)
+    expected = [(fingerprint, float(fingerprint == FP_TEST))]
+    assert [(r["fingerprint"], r["success_rate"]) for r in rows] == expected
+    assert rows[0]["protocol"] == ("test" if fingerprint == FP_TEST else "validation")
+    table = cli(home, "scores", c[:12], "--fingerprint", choice).stdout
+    name = "test" if fingerprint == FP_TEST else "validation"
+    assert table.splitlines()[-1].startswith(f"protocol {fingerprint[:12]} {name} (goal seeds from ")
+
+
+@pytest.mark.parametrize(
+    ("choice", "problem"),
+    [("abcdef0", "matches 2 evaluation protocols"), ("999999", "matches no evaluation protocols"),
+     ("abc", "is not a protocol name or fingerprint prefix"), ("tests", "is not a protocol name")],
+)  # fmt: skip
+def test_ambiguous_unknown_or_short_fingerprints_are_errors_listing_choices(two_protocols, choice, problem):
+    home, c = two_protocols
+    error = cli(home, "scores", c, "--fingerprint", choice, code=1).exception
+    assert isinstance(error, ValueError) and problem in str(error), error
+    assert f"{FP_TEST[:12]} test" in str(error) and f"{FP_VALIDATION[:12]} validation" in str(error)
+
+
+def test_one_protocol_still_checks_the_choice(two_protocols, tmp_path):
+    home, c = two_protocols
+    api = ArtifactsAPI(home)
+    d = _checkpoint(api, "D")
+    _evaluate_at(api, d, FP_TEST, 100_000, True)
+    rows = json.loads(cli(home, "scores", d, "--fingerprint", "test", "--json").stdout)
+    assert rows[0]["protocol"] == "test"
+    error = cli(home, "scores", d, "--fingerprint", "validation", code=1).exception
+    assert "none of" in str(error) and "validation goal seeds (50000)" in str(error), error
+
+
+def test_the_console_entry_point_exits_2_with_one_line(two_protocols):
+    from conftest import run_cli
+
+    home, c = two_protocols
+    proc = run_cli("scores", c, "--fingerprint", "abcdef0", home=home, check=False)
+    assert proc.returncode == 2, proc.stderr
+    (line,) = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert line.startswith("error: --fingerprint 'abcdef0' matches 2") and "--fingerprint test" in line
