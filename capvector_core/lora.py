@@ -20,6 +20,12 @@ and would skip the adapter); a model loaded with plain peft does not get it.
 
 peft reads `model.config` as a dict (`to_dict()`), e.g. for `merge_and_unload`; a model whose `config` is
 something else is refused here with that reason rather than failing deep inside peft.
+
+An adapter file is untrusted input: `load_adapter` checks it before anything is built (finite alphas and
+dropout, positive integer ranks, each lora_A/lora_B shaped as its layer at the config's rank, finite
+tensors) and matches its patterns (target/exclude modules, rank/alpha patterns, layers pattern) with
+peft's rules but a time budget (`_Matcher`), then gives peft the exact module names found, so a pattern
+that backtracks catastrophically is refused in seconds instead of hanging peft's `re.fullmatch`.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import math
 import os
 import re
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -335,11 +342,233 @@ def _has_our_syntax(targets) -> bool:
     )
 
 
+# An adapter file is checked before anything is built from it: its patterns are matched with a time budget,
+# its numbers must be finite and its ranks and shapes must be those of its tensors.
+MAX_PATTERN_CHARS = 100_000  # an exact regex of a few thousand module names fits
+MATCH_SECONDS = 2.0  # for one pattern against all of the model's module names (legitimate ones: milliseconds)
+TOTAL_MATCH_SECONDS = 20.0  # for all of one adapter file's patterns
+
+
+def _shown(pattern: str, k: int = 80) -> str:
+    text = repr(pattern)
+    return text if len(text) <= k else text[: k - 1] + "…"
+
+
+class _Matcher:
+    """An adapter file's regexes matched against module names without hanging on them.
+
+    Python's `re` (what peft uses) backtracks: `(a+)+$` against a long name of a's runs for hours. Here
+    they run on the `regex` engine (a dependency of transformers, so present with peft; `re`'s syntax and
+    semantics), with a time budget per pattern (`MATCH_SECONDS`, over all names) and per file
+    (`TOTAL_MATCH_SECONDS`); a pattern that exceeds either is refused, naming it. peft is then handed
+    only the exact names found (see `_adapter_targets`), so it never runs the file's own patterns."""
+
+    def __init__(self, path: str | os.PathLike):
+        import regex
+
+        self.engine = regex
+        self.path = path
+        self.end = time.monotonic() + TOTAL_MATCH_SECONDS
+        self.compiled: dict[str, object] = {}
+        self.spent: dict[str, float] = {}
+
+    def _pattern(self, field: str, pattern: str, shown: str):
+        if pattern not in self.compiled:
+            if len(pattern) > MAX_PATTERN_CHARS:
+                raise ValueError(
+                    f"{self.path}: {field} pattern {_shown(shown)} is {len(pattern):,} characters long "
+                    f"(at most {MAX_PATTERN_CHARS:,})"
+                )
+            try:
+                self.compiled[pattern] = self.engine.compile(pattern)
+            except (self.engine.error, OverflowError, RecursionError) as e:
+                raise ValueError(
+                    f"{self.path}: {field} pattern {_shown(shown)} is not a valid regex: {e}"
+                ) from None
+        return self.compiled[pattern]
+
+    def __call__(self, field: str, pattern: str, name: str, shown: str | None = None, full: bool = True):
+        """`re.fullmatch(pattern, name)` (`re.match` if not `full`), refusing a pattern that runs too long."""
+        shown = pattern if shown is None else shown
+        compiled = self._pattern(field, pattern, shown)
+        start = time.monotonic()
+        own, total = MATCH_SECONDS - self.spent.get(pattern, 0.0), self.end - start
+        try:
+            return (compiled.fullmatch if full else compiled.match)(name, timeout=max(min(own, total), 1e-3))
+        except TimeoutError:
+            limit = (
+                f"over {MATCH_SECONDS:g} s"
+                if own <= total
+                else f"the file's last of {TOTAL_MATCH_SECONDS:g} s"
+            )
+            raise ValueError(
+                f"{self.path}: {field} pattern {_shown(shown)} takes {limit} to match the model's module "
+                "names (it backtracks catastrophically); refused"
+            ) from None
+        finally:
+            self.spent[pattern] = self.spent.get(pattern, 0.0) + time.monotonic() - start
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _check_numbers(doc: dict, path: str | os.PathLike) -> None:
+    """Ranks positive integers, alphas and dropout finite numbers (JSON `NaN`/`Infinity` parse as floats)."""
+    bad = []
+    if not (_is_int(doc.get("r")) and doc["r"] >= 1):
+        bad.append(f"r={doc.get('r')!r} (a positive integer)")
+    if not _is_number(doc.get("lora_alpha")):
+        bad.append(f"lora_alpha={doc.get('lora_alpha')!r} (a finite number)")
+    dropout = doc.get("lora_dropout", 0.0)
+    if not (_is_number(dropout) and 0 <= dropout < 1):
+        bad.append(f"lora_dropout={dropout!r} (a finite number in [0, 1))")
+    for field, ok, what in (
+        ("rank_pattern", lambda v: _is_int(v) and v >= 1, "positive integers"),
+        ("alpha_pattern", _is_number, "finite numbers"),
+    ):
+        pattern = doc.get(field) or {}
+        if not isinstance(pattern, dict) or not all(isinstance(k, str) for k in pattern):
+            bad.append(f"{field} (a mapping of patterns to {what})")
+        else:
+            bad += [f"{field}[{k!r}]={v!r} ({what[:-1]})" for k, v in pattern.items() if not ok(v)]
+    targets = doc.get("target_modules")
+    if not (
+        isinstance(targets, str) or (isinstance(targets, list) and all(isinstance(t, str) for t in targets))
+    ):
+        bad.append(f"target_modules={_shown(str(targets))} (a regex or a list of names)")
+    if bad:
+        raise ValueError(f"{path}: {ADAPTER_CONFIG} has invalid value(s): {'; '.join(bad)}")
+
+
+def _layer_index(config: peft.LoraConfig, name: str, match: _Matcher) -> int | None:
+    """peft's layer index of a module name for `layers_to_transform` (its own two regexes)."""
+    patterns = config.layers_pattern
+    if not patterns:
+        found = match("layers_pattern", r".*?\.[^.]*\.(?P<idx>\d+)\.", name, full=False)
+    else:
+        found = None
+        for p in [patterns] if isinstance(patterns, str) else patterns:
+            found = match("layers_pattern", rf"(?:^|.*?\.){p}\.(?P<idx>\d+)\.", name, p, full=False)
+            if found is not None:
+                break
+    return int(found.group("idx")) if found is not None else None
+
+
+def _peft_targeted(config: peft.LoraConfig, name: str, match: _Matcher) -> bool:
+    """peft's `check_target_module_exists` for a LoRA config, with the patterns run by `match`."""
+    exclude = config.exclude_modules
+    if exclude:
+        if isinstance(exclude, str):
+            if match("exclude_modules", exclude, name):
+                return False
+        elif name in exclude or any(name.endswith(f".{e}") for e in exclude):
+            return False
+    targets = config.target_modules
+    if isinstance(targets, str):
+        return match("target_modules", targets, name) is not None
+    if name in targets:
+        return True
+    if not any(name.endswith(f".{t}") for t in targets):
+        return False
+    layers = config.layers_to_transform
+    if layers is None or (isinstance(layers, list) and not layers):
+        return True
+    index = _layer_index(config, name, match)
+    return index is not None and (index == layers if isinstance(layers, int) else index in layers)
+
+
+def _pattern_value(patterns: dict, default, name: str, field: str, match: _Matcher):
+    r"""peft's `get_pattern_key`: the value of the first key whose `(.*\.)?(key)$` matches the name."""
+    for key, value in patterns.items():
+        if match(field, rf"(.*\.)?({key})$", name, key, full=False):
+            return value
+    return default
+
+
+def _adapter_targets(
+    model: nn.Module, doc: dict, config: peft.LoraConfig, path
+) -> dict[str, tuple[nn.Linear, int]]:
+    """The modules an adapter file adapts in `model`: those its (guarded) patterns select, all of which
+    must be `nn.Linear` outside `nn.MultiheadAttention`."""
+    match = _Matcher(path)
+    modules = {n: m for n, m in model.named_modules() if n}
+    if _has_our_syntax(doc["target_modules"]):  # older capvector adapters: this project's pattern syntax
+        patterns = doc["target_modules"]
+        try:
+            regexes = {p: module_patterns.pattern_regex(p) for p in patterns}
+        except module_patterns.PatternError as e:
+            raise ValueError(f"{path}: {e}") from None
+        linears = [n for n, m in modules.items() if isinstance(m, nn.Linear)]
+        hits = {p: {n for n in linears if match("target_modules", rx, n, p)} for p, rx in regexes.items()}
+        dead = [p for p, h in hits.items() if not h]
+        if dead:
+            raise ValueError(f"target pattern(s) match no nn.Linear module: {module_patterns.describe(dead)}")
+        names = [n for n in linears if any(n in h for h in hits.values())]
+    else:
+        names = [n for n in modules if _peft_targeted(config, n, match)]
+    if not names:
+        raise ValueError(
+            f"{path}: target_modules {_shown(str(doc['target_modules']))} match no module of the model"
+        )
+    wrong = [f"{n} ({type(modules[n]).__name__})" for n in names if not isinstance(modules[n], nn.Linear)]
+    bad = _mha_children(model, names)
+    if wrong or bad:
+        raise ValueError(
+            "only nn.Linear layers outside nn.MultiheadAttention can be adapted here; "
+            f"got {(wrong + bad)[:5]}"
+        )
+    ranks = {n: _pattern_value(config.rank_pattern or {}, config.r, n, "rank_pattern", match) for n in names}
+    alphas = {
+        n: _pattern_value(config.alpha_pattern or {}, config.lora_alpha, n, "alpha_pattern", match)
+        for n in names
+    }
+    config.target_modules = module_patterns.exact_regex(names)
+    config.exclude_modules = config.layers_to_transform = config.layers_pattern = None
+    # every name its own key, longest first: peft takes the first key matching `(.*\.)?(key)$`
+    order = sorted(names, key=len, reverse=True)
+    config.rank_pattern = {re.escape(n): ranks[n] for n in order} if config.rank_pattern else {}
+    config.alpha_pattern = {re.escape(n): alphas[n] for n in order} if config.alpha_pattern else {}
+    return {n: (modules[n], ranks[n]) for n in names}
+
+
+def _check_tensors_fit(targets: dict, tensors: dict[str, torch.Tensor], path) -> None:
+    """Each adapted layer's lora_A (r × in) and lora_B (out × r) are in the file with the layer's shape and
+    the config's rank for it, finite; no A/B for other modules. (Other keys are checked after building.)"""
+    problems, seen = [], set()
+    for name, (layer, r) in targets.items():
+        for part, want in (("lora_A", (r, layer.in_features)), ("lora_B", (layer.out_features, r))):
+            key = f"{PEFT_PREFIX}{name}.{part}.weight"
+            seen.add(key)
+            t = tensors.get(key)
+            if t is None:
+                problems.append(f"missing {key}")
+            elif tuple(t.shape) != want:
+                problems.append(f"{key} is {list(t.shape)}, the config and layer need {list(want)} (r={r})")
+            elif not t.is_floating_point() or not bool(torch.isfinite(t).all()):
+                problems.append(f"{key} is not finite floats ({t.dtype})")
+    extra = sorted(k for k in tensors if k not in seen and re.search(r"\.lora_[AB]\.weight$", k))
+    problems += [f"unexpected {k} (a module the config does not target)" for k in extra]
+    if problems:
+        more = f" (+{len(problems) - 3} more)" if len(problems) > 3 else ""
+        raise ValueError(
+            f"{path}: adapter tensors do not fit its config and the model's layer shapes: "
+            f"{'; '.join(problems[:3])}{more}"
+        )
+
+
 def load_adapter(model: nn.Module, path: str | os.PathLike) -> list[str]:
     """Apply a saved peft LoRA adapter to `model` (a model without adapters) through peft and load it.
 
     The adapters are trainable afterwards (as after `apply_lora`). Older capvector adapters whose
-    `target_modules` is a list of globs are read with this project's pattern syntax.
+    `target_modules` is a list of globs are read with this project's pattern syntax. Before anything is
+    built, the file is checked: finite numbers, patterns that match in bounded time (`_Matcher`), every
+    target an `nn.Linear`, and each tensor's shape that of its layer at the config's rank; peft then gets
+    the exact names found, with their ranks and alphas.
     """
     import peft
 
@@ -348,14 +577,16 @@ def load_adapter(model: nn.Module, path: str | os.PathLike) -> list[str]:
     if kind != "LORA":
         hint = "; use capvector_core.lora_sp.load_adapter" if kind == "LORA_SP" else ""
         raise ValueError(f"{path} holds a {kind} adapter; this loads peft LoRA (LORA) adapters only{hint}")
+    _check_numbers(doc, path)
     config = peft.LoraConfig.from_pretrained(str(path))
     used = [f for f in _UNSUPPORTED if getattr(config, f, None)]
     if used:
         raise ValueError(f"{path}: peft LoRA option(s) {used} are not supported here")
     config.inference_mode = False
-    if _has_our_syntax(doc.get("target_modules")):
-        patterns = doc["target_modules"]
-        config.target_modules = _peft_targets(model, patterns, linear_targets(model, patterns))
+    _check_peft_config(model)
+    if adapter_modules(model) or _own_adapters(model) or hasattr(model, "peft_config"):
+        raise ValueError("the model already has adapters (merge or remove them first)")
+    _check_tensors_fit(_adapter_targets(model, doc, config, path), tensors, path)
     with _undone_on_error(model):
         names = _inject(model, config)
         state = {k.removeprefix(PEFT_PREFIX): t for k, t in tensors.items()}

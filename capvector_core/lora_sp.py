@@ -1,6 +1,6 @@
 """LoRA-SP (Kim et al., 2026): rank-adaptive LoRA with input-conditioned singular values over a vector bank.
 
-Per adapted linear layer (`shared/reference/papers.md` §2):
+Per adapted linear layer (the LoRA-SP paper's formulation):
 - ΔW(x) = s·U·diag(σ(x))·V, with V = `lora_A` (bank × in), U = `lora_B` (out × bank), s = alpha / bank;
 - σ(x) = softplus(router(x)) (or ReLU): a linear router on the layer input gives non-negative scores,
   one per bank vector, acting as data-conditioned singular values;

@@ -2,10 +2,11 @@
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 import torch
-from safetensors.torch import load_file
+from safetensors.torch import load_file, save_file
 from torch import nn
 
 from capvector_core.lora import (
@@ -173,3 +174,126 @@ def test_other_peft_types_refused_by_name(tmp_path):
         (out / "adapter_config.json").write_text(json.dumps({**doc, "peft_type": kind}))
         with pytest.raises(ValueError, match=hint):
             load_adapter(TinyPolicy(), out)
+
+
+# ---------------------------------------------------------------------------- hostile adapter files
+def _saved(tmp_path, **config_changes):
+    """A real adapter (r=2 on action_head and the linear1 layers) with its config edited."""
+    torch.manual_seed(0)
+    model = TinyPolicy()
+    apply_lora(model, LoraConfig(target_modules=["action_head", "linear1"], r=2))
+    _randomize_b(model)
+    out = save_adapter(model, tmp_path / "a")
+    doc = json.loads((out / "adapter_config.json").read_text())
+    (out / "adapter_config.json").write_text(json.dumps({**doc, **config_changes}))  # NaN written as NaN
+    return out
+
+
+def _refuse_building(monkeypatch):
+    """From now on, fail the test if peft is asked to build adapter layers (the checks must come first)."""
+    import peft
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("peft.inject_adapter_in_model was called")
+
+    monkeypatch.setattr(peft, "inject_adapter_in_model", refuse)
+
+
+def _untouched(model):
+    return not adapter_modules(model) and not hasattr(model, "peft_config")
+
+
+HOSTILE_SCRIPT = """
+import json, sys, time
+sys.path.insert(0, sys.argv[1])
+from torch import nn
+from test_lora import TinyPolicy
+from capvector_core.lora import load_adapter
+for pattern in json.loads(sys.argv[3]):
+    doc = json.loads(open(sys.argv[2] + "/adapter_config.json").read())
+    open(sys.argv[2] + "/adapter_config.json", "w").write(json.dumps({**doc, "target_modules": pattern}))
+    model = TinyPolicy()
+    model.add_module("a" * 40 + "b", nn.Linear(4, 4))  # a long name the pattern almost matches
+    start = time.monotonic()
+    try:
+        load_adapter(model, sys.argv[2])
+        message = None
+    except ValueError as e:
+        message = str(e)
+    print(json.dumps({"pattern": pattern, "message": message, "seconds": time.monotonic() - start}))
+"""
+
+
+def test_backtracking_target_patterns_are_refused_in_bounded_time(tmp_path):
+    """`re.fullmatch('(a+)+$', 'a' * 40 + 'b')` (what peft runs) backtracks for hours. The file's patterns are
+    matched with a time budget; one that needs it all is refused in one line naming it, and peft never runs
+    them. Run in a child process: before the fix it never returned (the timeout below fails the test)."""
+    import subprocess
+    import sys
+
+    out = _saved(tmp_path)
+    patterns = [r"(a+)+$", r"(a|aa)+$"]  # the second also backtracks on the `regex` engine: the time budget
+    proc = subprocess.run(
+        [sys.executable, "-c", HOSTILE_SCRIPT, str(Path(__file__).parent), str(out), json.dumps(patterns)],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=Path(__file__).parents[1],
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    results = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert [r["pattern"] for r in results] == patterns
+    for r in results:
+        assert r["message"] and "\n" not in r["message"] and repr(r["pattern"]) in r["message"], r
+    assert "match no module" in results[0]["message"]  # `regex` answers this one at once: no match
+    assert "takes over 2 s" in results[1]["message"]
+
+
+def test_overlong_pattern_refused(tmp_path):
+    out = _saved(tmp_path, target_modules="|".join(["action_head"] * 30_000))
+    model = TinyPolicy()
+    with pytest.raises(ValueError, match=r"target_modules pattern 'action_head\|.*characters long"):
+        load_adapter(model, out)
+    assert _untouched(model)
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"r": 2**16}, r"lora_A.weight is \[2, 32\], the config and layer need \[65536, 32\] \(r=65536\)"),
+        ({"rank_pattern": {"action_head": 4}}, r"action_head.lora_A.weight is \[2, 32\].*\[4, 32\] \(r=4\)"),
+        ({"lora_alpha": float("nan")}, r"lora_alpha=nan \(a finite number\)"),
+        ({"lora_alpha": float("inf")}, r"lora_alpha=inf"),
+        ({"alpha_pattern": {"linear1": float("-inf")}}, r"alpha_pattern\['linear1'\]=-inf"),
+        ({"lora_dropout": float("nan")}, r"lora_dropout=nan"),
+        ({"r": 0}, r"r=0 \(a positive integer\)"),
+        ({"r": True}, r"r=True"),
+        ({"rank_pattern": {"linear1": 2.5}}, r"rank_pattern\['linear1'\]=2.5"),
+        ({"target_modules": "embed|action_head"}, r"unexpected base_model.model.encoder.layers.0.linear1"),
+        ({"target_modules": "encoder.layers.0"}, r"only nn.Linear layers .*TransformerEncoderLayer"),
+        ({"target_modules": "(unclosed"}, r"target_modules pattern '\(unclosed' is not a valid regex"),
+    ],
+)
+def test_adapter_config_checked_against_its_tensors_before_anything_is_built(
+    tmp_path, monkeypatch, changes, message
+):
+    """A config r = 2**22 against rank-8 tensors used to build 5 GB of layers before the shape check
+    failed; NaN alpha loaded. Every check names the field or the tensor, in one line, before peft builds
+    a layer."""
+    out = _saved(tmp_path, **changes)
+    _refuse_building(monkeypatch)
+    model = TinyPolicy()
+    with pytest.raises(ValueError, match=message) as info:
+        load_adapter(model, out)
+    assert "\n" not in str(info.value)
+    assert _untouched(model) and all(p.requires_grad for p in model.parameters())
+
+
+def test_non_finite_adapter_tensors_refused(tmp_path, monkeypatch):
+    out = _saved(tmp_path)
+    _refuse_building(monkeypatch)
+    tensors = load_file(out / "adapter_model.safetensors")
+    tensors["base_model.model.action_head.lora_B.weight"][0, 0] = float("nan")
+    save_file(tensors, out / "adapter_model.safetensors")
+    with pytest.raises(ValueError, match=r"action_head.lora_B.weight is not finite"):
+        load_adapter(TinyPolicy(), out)

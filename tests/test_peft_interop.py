@@ -166,3 +166,39 @@ def test_policy_config_is_readable_by_peft():
     """peft's merge_and_unload calls model.config.to_dict(); the policy config provides it."""
     policy = _model("l1_chunk")
     assert policy.config.to_dict()["model_type"].startswith("capvector-")
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"target_modules": r".*\.(q_proj|fc2)", "exclude_modules": r"backbone\.layers\.1\..*"},
+        {
+            "target_modules": ["q_proj", "o_proj", "fc1"],
+            "layers_to_transform": [1],
+            "layers_pattern": "layers",
+        },
+        {
+            "target_modules": ["q_proj", "fc1"],
+            "exclude_modules": ["layers.0.attn.q_proj"],
+            "rank_pattern": {"fc1": 3, r"layers\.1\.attn\.q_proj": 2},
+            "alpha_pattern": {r".*0\.mlp\.fc1": 5},
+        },
+    ],
+)
+def test_peft_made_adapter_selects_the_same_modules_as_peft(tmp_path, options):
+    """load_adapter matches the file's patterns itself (bounded in time) with peft's rules, then gives peft
+    the exact names: the same layers, ranks, scalings and outputs as peft's own loader."""
+    base = _model("stand_in")
+    made = peft.get_peft_model(copy.deepcopy(base), peft.LoraConfig(r=4, lora_alpha=8, **options))
+    _randomize_b(made)
+    made.save_pretrained(tmp_path / "peft")
+    theirs = peft.PeftModel.from_pretrained(copy.deepcopy(base), tmp_path / "peft")
+    ours = copy.deepcopy(base)
+    names = load_adapter(ours, tmp_path / "peft")
+    want = adapter_modules(theirs.base_model.model)
+    assert sorted(names) == sorted(want) and 0 < len(names) < 13
+    layers = adapter_modules(ours)
+    for n, layer in want.items():
+        assert layers[n].r == layer.r and layers[n].scaling == layer.scaling, n
+    x = _inputs("stand_in")
+    torch.testing.assert_close(_run(ours, x), _run(theirs, x))
