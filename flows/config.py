@@ -152,18 +152,7 @@ class PipelineConfig(BaseModel):
             raise ValueError(
                 f"policy.obs_mode ({self.policy.obs_mode}) differs from data.obs_mode ({self.data.obs_mode})"
             )
-        if self.policy.obs_transform != self.data.obs_transform:
-            if self.policy.obs_transform.active:
-                raise ValueError(
-                    "policy.obs_transform differs from data.obs_transform: set data.obs_transform only "
-                    "(the pipeline gives it to the policy)"
-                )
-            if self.data.obs_transform.active and self.data.obs_mode != "state":
-                raise ValueError(
-                    f"data.obs_transform {self.data.obs_transform.kind!r} maps the state: data.obs_mode "
-                    f"must be 'state', got {self.data.obs_mode!r}"
-                )
-            self.policy = self.policy.model_copy(update={"obs_transform": self.data.obs_transform})
+        self._give_policy_the_obs_transform()
         if self.data.obs_mode == "pixels" and self.policy.image_size != self.data.image_size:
             raise ValueError(
                 f"policy.image_size ({self.policy.image_size}) differs from data.image_size "
@@ -180,6 +169,30 @@ class PipelineConfig(BaseModel):
         if len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"seeds must be distinct, got {self.seeds}")
         return self
+
+    def _give_policy_the_obs_transform(self) -> None:
+        """data.obs_transform is declared once, here; the policy (which applies it) gets a copy."""
+        transform = self.data.obs_transform
+        if "obs_transform" not in type(self.policy).model_fields:
+            if transform.active:
+                raise ValueError(
+                    f"data.obs_transform {transform.kind!r}: policy type {self.policy.type!r} has no "
+                    "obs_transform setting (the token-backbone policies have)"
+                )
+            return
+        if self.policy.obs_transform == transform:
+            return
+        if self.policy.obs_transform.active:
+            raise ValueError(
+                "policy.obs_transform differs from data.obs_transform: set data.obs_transform only "
+                "(the pipeline gives it to the policy)"
+            )
+        if transform.active and self.data.obs_mode != "state":
+            raise ValueError(
+                f"data.obs_transform {transform.kind!r} maps the state: data.obs_mode must be 'state', "
+                f"got {self.data.obs_mode!r}"
+            )
+        self.policy = self.policy.model_copy(update={"obs_transform": transform})
 
     # ------------------------------------------------------------ step configs
     def demo_config(self, split: Literal["pretrain", "extraction", "downstream"]) -> DemoConfig:
