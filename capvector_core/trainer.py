@@ -9,6 +9,11 @@ function of the step (linear warm-up then cosine to ``min_lr_ratio``), so it nee
 ``train`` resumes from the newest complete checkpoint in ``run_dir``; a run killed at any point and
 rerun ends with the same weights, bit for bit, as an uninterrupted one with the same seed.
 
+Lost files are recomputed, never a dead end: a checkpoint whose files are missing or unreadable, or
+one past a kept snapshot that is gone, is passed over for the newest older one that is intact (a
+snapshot at the resume step itself is written again from its weights); with none, or without the
+loss curve, training starts over. Checkpoints past the resume point are removed.
+
 Layout of ``run_dir``::
 
     checkpoints/step_XXXXXXXX/{policy.safetensors, aux.safetensors, trainer_state.pt, train_config.json}
@@ -189,8 +194,10 @@ class _Run:
         for _, old in _checkpoints(self.run_dir)[: -self.config.keep_checkpoints]:
             shutil.rmtree(old, ignore_errors=True)
 
-    def load(self, path: Path) -> None:
-        saved = TrainConfig.model_validate_json((path / "train_config.json").read_text())
+    def check_config(self, path: Path, saved: TrainConfig | None = None) -> None:
+        """Refuse a checkpoint written under another TrainConfig (an error, not a lost file)."""
+        if saved is None:
+            saved = TrainConfig.model_validate_json((path / "train_config.json").read_text())
         ours, theirs = self.config.model_dump(), saved.model_dump()
         diff = sorted(k for k in ours if k not in _RESUME_FREE and ours[k] != theirs.get(k))
         if diff:
@@ -199,10 +206,23 @@ class _Run:
                 f"(checkpoint {[theirs.get(k) for k in diff]}, now {[ours[k] for k in diff]}); "
                 "use a new run_dir for a different configuration"
             )
+
+    def read(self, path: Path) -> dict[str, Any]:
+        """Every file of a checkpoint, read before anything is changed (raises if one is lost)."""
+        return {
+            "policy": load_file(str(path / "policy.safetensors")),
+            "aux": load_file(str(path / "aux.safetensors")) if self.objective is not None else None,
+            "state": torch.load(path / "trainer_state.pt", weights_only=True, map_location="cpu"),
+        }
+
+    def load(self, path: Path, read: dict[str, Any] | None = None) -> None:
+        if read is None:
+            self.check_config(path)
+            read = self.read(path)
         load_policy_weights(self.policy, path / "policy.safetensors")
         if self.objective is not None:
-            self.objective.load_state_dict(load_file(str(path / "aux.safetensors")), strict=True)
-        state = torch.load(path / "trainer_state.pt", weights_only=True, map_location="cpu")
+            self.objective.load_state_dict(read["aux"], strict=True)
+        state = read["state"]
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
@@ -210,6 +230,39 @@ class _Run:
             torch.cuda.set_rng_state_all(state["cuda_rng"])
         self.step = int(state["step"])
         self.train_seconds = float(state["train_seconds"])
+
+    def resume(self, snapshot_at: set[int], curve_path: Path) -> str:
+        """Load the newest usable checkpoint of the run dir (see the module's docstring); says what was
+        passed over ("" when nothing was)."""
+        passed: list[str] = []
+        chosen = 0
+        checkpoints = _checkpoints(self.run_dir)
+        usable = checkpoints
+        if checkpoints and not curve_path.exists():
+            passed.append(f"{curve_path.name} missing")
+            usable = []
+        for step, path in reversed(usable):
+            run_dir = self.run_dir
+            lost = [s for s in sorted(snapshot_at) if s < step and not snapshot_path(run_dir, s).is_file()]
+            if lost:
+                passed.append(f"{path.name}: snapshot(s) {lost} missing")
+                continue
+            try:  # every file read before anything is changed; a lost or cut-short one: not intact
+                saved = TrainConfig.model_validate_json((path / "train_config.json").read_text())
+                read = self.read(path)
+            except Exception as e:
+                passed.append(f"{path.name}: {type(e).__name__}")
+                continue
+            self.check_config(path, saved)
+            self.load(path, read)
+            chosen = step
+            break
+        for step, path in checkpoints:
+            if step > chosen:  # unusable, or past a lost snapshot: recomputed from `chosen`
+                shutil.rmtree(path, ignore_errors=True)
+        if chosen in snapshot_at and not snapshot_path(self.run_dir, chosen).is_file():
+            save_policy(self.policy, snapshot_path(self.run_dir, chosen))  # the weights at that step
+        return "; ".join(passed)
 
 
 def _cpu_state(module: nn.Module) -> dict[str, torch.Tensor]:
@@ -280,11 +333,9 @@ def train(
     generator = torch.Generator().manual_seed(config.seed)
     run = _Run(policy, objective, optimizer, generator, config, run_dir, device)
 
-    checkpoints = _checkpoints(run_dir)
-    if checkpoints:
-        run.load(checkpoints[-1][1])
-    start = run.step
     curve_path = run_dir / "loss_curve.jsonl"
+    passed_over = run.resume(snapshot_at, curve_path)
+    start = run.step
     _truncate_curve(curve_path, start)
 
     names: list[str] = []  # loss, the policy's terms, the objective's, the extra losses, grad_norm
@@ -294,7 +345,8 @@ def train(
     t_start = time.perf_counter()
     t_segment = t_start
     if progress is not None:
-        progress(run.step, config.steps, "resumed" if run.step else "started")
+        how = "resumed" if run.step else "started"
+        progress(run.step, config.steps, f"{how} (passed over {passed_over})" if passed_over else how)
     with open(curve_path, "a") as curve:
         while run.step < config.steps:
             step = run.step

@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -253,3 +254,45 @@ def test_snapshots_are_the_weights_at_their_step_and_bad_ones_refused(tmp_path):
     for bad in ([12], [0], [4, 4]):
         with pytest.raises(ValueError, match="snapshot_steps"):
             quick(steps=12, snapshot_steps=bad)
+
+
+def _as_if_killed_after(run_dir: Path, step: int) -> None:
+    """The run dir a kill -9 leaves once checkpoint `step` was written: later checkpoints, the final
+    weights and the result are not there yet."""
+    for ckpt in (run_dir / "checkpoints").glob("step_*"):
+        if int(ckpt.name.split("_")[1]) > step:
+            shutil.rmtree(ckpt)
+    for name in ("policy.safetensors", "result.json"):
+        (run_dir / name).unlink()
+
+
+@pytest.mark.parametrize("lost", ["snapshot", "trainer_state", "loss_curve"])
+def test_a_resume_recomputes_what_was_lost_from_the_run_dir(tmp_path, lost):
+    """A file removed from an interrupted run dir (a snapshot, a checkpoint's state, the loss curve) is
+    recomputed from the newest intact checkpoint before it, or from the start: never a dead end, and the
+    result is bit for bit an uninterrupted run's."""
+    config = quick(steps=12, checkpoint_every=4, keep_checkpoints=10, snapshot_steps=[4, 8])
+
+    def fresh():
+        torch.manual_seed(0)
+        return L1ChunkPolicy(L1ChunkConfig(**TINY))
+
+    straight = train(fresh(), make_dataset(), config, tmp_path / "straight")
+    run_dir = tmp_path / "run"
+    train(fresh(), make_dataset(), config, run_dir)
+    _as_if_killed_after(run_dir, 8)
+    if lost == "snapshot":  # resuming at 8 would never write the snapshot at 4 again
+        (run_dir / "snapshots" / "step_00000004.safetensors").unlink()
+    elif lost == "trainer_state":
+        (run_dir / "checkpoints" / "step_00000008" / "trainer_state.pt").unlink()
+    else:
+        (run_dir / "loss_curve.jsonl").unlink()
+    lines: list[str] = []
+    result = train(fresh(), make_dataset(), config, run_dir, progress=lambda d, t, x="": lines.append(x))
+    assert result.resumed_from_step == (0 if lost == "loss_curve" else 4)
+    assert "passed over" in lines[0], lines[0]
+    assert result.weights_path.read_bytes() == straight.weights_path.read_bytes()
+    for step, path in straight.snapshots.items():
+        assert result.snapshots[step].read_bytes() == path.read_bytes(), step
+    steps = [r["step"] for r in curve(result.loss_curve_path)]
+    assert steps == [r["step"] for r in curve(straight.loss_curve_path)]
