@@ -36,6 +36,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--frequencies", type=float, nargs="+", default=[1.0], help="0: identity (no transform)")
+    ap.add_argument("--aliased", nargs="+", default=["goal"], help="positions the distractors encode")
+    ap.add_argument("--hide-aliased", action="store_true", help="leave them out of the random features")
     ap.add_argument("--arms", nargs="+", default=["spatial:0.5", "spatial:2", "dynamics:0.5"])
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -48,9 +50,11 @@ def main() -> None:
     )
     results: dict[str, dict[str, list[float]]] = {}
     for freq in args.frequencies:
-        transform = (
-            ObsTransformConfig(kind="random_features", frequency=freq) if freq else ObsTransformConfig()
+        transform = ObsTransformConfig(
+            kind="random_features", frequency=freq, aliased=args.aliased, hide_aliased=args.hide_aliased
         )
+        transform = transform if freq else ObsTransformConfig()
+        variant = f"f{freq:g}" + (f"-hide-{'-'.join(args.aliased)}" if args.hide_aliased and freq else "")
         policy_config = {"obs_mode": "state", "d_model": 64, "n_layers": 2, "n_heads": 4, "chunk_size": 8}
         torch.manual_seed(0)
         policy = build_policy({**policy_config, "obs_transform": transform.model_dump()}, device="cpu")
@@ -63,7 +67,7 @@ def main() -> None:
             num_threads=1,
             device="cpu",
         )
-        pt = train(policy, pre, pretrain, args.work / f"pretrain-f{freq:g}").weights_path
+        pt = train(policy, pre, pretrain, args.work / f"pretrain-{variant}").weights_path
         for arm in ["sft", *args.arms]:
             name, _, weight = arm.partition(":")
             aux = None if name == "sft" else AuxConfig(name=name, weight=float(weight))
@@ -79,11 +83,11 @@ def main() -> None:
                     device="cpu",
                     aux=aux,
                 )
-                run = args.work / f"pilot-f{freq:g}-{'-'.join(args.tasks)[:40]}-{arm}-{seed}"
+                run = args.work / f"pilot-{variant}-{'-'.join(args.tasks)[:40]}-{arm}-{seed}"
                 path = train(load_policy(pt, device="cpu"), down, config, run).weights_path
                 loss = held_out_action_loss(path, held, 256, 0)
-                results.setdefault(f"f{freq:g}", {}).setdefault(arm, []).append(loss)
-                print(f"frequency {freq:g} {arm} seed {seed}: held-out action loss {loss:.4f}", flush=True)
+                results.setdefault(variant, {}).setdefault(arm, []).append(loss)
+                print(f"{variant} {arm} seed {seed}: held-out action loss {loss:.4f}", flush=True)
     write(args, results, time.perf_counter() - start)
 
 
@@ -99,7 +103,7 @@ def write(args: argparse.Namespace, results: dict, seconds: float) -> None:
         f"wall {seconds / 60:.1f} min. Loss on held-out demonstrations (lower is better); Δ = arm − SFT per "
         "seed (paired), and how many seeds it is below 0.",
         "",
-        "| transform frequency | arm | loss (mean) | Δ vs SFT (mean) | seeds better |",
+        "| transform | arm | loss (mean) | Δ vs SFT (mean) | seeds better |",
         "|---|---|---|---|---|",
     ]
     for freq, arms in results.items():
@@ -107,7 +111,7 @@ def write(args: argparse.Namespace, results: dict, seconds: float) -> None:
         for arm, values in arms.items():
             delta = np.array(values) - sft
             lines.append(
-                f"| {freq[1:]} | {arm} | {np.mean(values):.4f} | {delta.mean():+.4f} | "
+                f"| {freq} | {arm} | {np.mean(values):.4f} | {delta.mean():+.4f} | "
                 f"{int((delta < 0).sum())}/{len(delta)} |"
             )
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from capvector_core.obs_transforms import GOAL, ObsTransform, ObsTransformConfig
+from capvector_core.obs_transforms import POSITIONS, ObsTransform, ObsTransformConfig
 from capvector_core.policy import build_policy, load_policy, save_policy
 from flows.study_config import load_study
 
@@ -23,9 +23,14 @@ def test_the_map_is_fixed_by_its_seed_and_hides_the_state_behind_sines():
     assert a.shape == (6, 50) and torch.equal(a, b) and not torch.allclose(a, other)
     assert a.abs().max() <= 1.0  # sines: the positions are not in the input in clear
     moved = state.clone()
-    moved[:, GOAL] += 0.05  # the distractors move a lot for a small goal shift (high frequency)
+    moved[:, POSITIONS["goal"][0]] += 0.05  # the distractors move a lot for a small goal shift
     shift = (ObsTransform(ObsTransformConfig(**RANDOM), 39)(moved) - a)[:, 40:].abs().mean()
     assert shift > 0.3
+    hidden = ObsTransformConfig(**{**RANDOM, "aliased": ["goal", "object"], "hide_aliased": True})
+    assert hidden.aliased_dims() == [4, 5, 6, 22, 23, 24, 36, 37, 38]
+    shown = ObsTransform(hidden, 39)
+    features = shown(moved)[:, :40] - shown(state)[:, :40]
+    assert features.abs().max() < 1e-6  # a hidden position moves only the distractors
     identity = ObsTransform(ObsTransformConfig(), 39)
     assert identity(state) is state
 
