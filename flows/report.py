@@ -113,7 +113,7 @@ def _sweep_section(workspace: Workspace, sweep_id: str, doc: dict[str, Any]) -> 
     from flows.sweep import sweep_markdown
 
     best = doc["best"]
-    lr = _trained_with(workspace, best["checkpoint_id"], "lr")
+    lr = _trained_with(workspace, best["checkpoint_ids"][0], "lr")
     return (
         f"\n## α × λ sweep `{sweep_id[:12]}` "
         f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']}"
@@ -128,7 +128,7 @@ def _learning_rate_section(workspace: Workspace, cells: list[tuple[str, dict[str
     """One-cell sweeps are how a learning rate is chosen: one table, the best lr of each arm marked."""
     rows = []
     for sid, doc in cells:
-        lr = _trained_with(workspace, doc["best"]["checkpoint_id"], "lr") or 0.0
+        lr = _trained_with(workspace, doc["best"]["checkpoint_ids"][0], "lr") or 0.0
         rows.append((doc["arm"], lr, sid, doc["best"], doc["seed"]))
     rows.sort()
     best = {arm: max(r[3]["validation_success"] for r in rows if r[0] == arm) for arm, *_ in rows}

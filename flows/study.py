@@ -1,18 +1,24 @@
 """The `study` flow: a whole experiment on CapVector, from demonstrations to the analysed report.
 
     demos -> θ_pt
-    -> extraction lr chosen on D_ext validation goals          (selection artifact)
-    -> auxiliary weight chosen (downstream, validation goals)  (selection artifact; θ_ao uses it too)
-    -> a tuning γ (tuning seed) -> α × λ chosen for CapVector on it (validation goals) (selection artifact)
-    -> per γ draw d: θ_ft^d, θ_ao^d (chosen lr) -> γ^d, γ_null^d (random, γ^d's per-tensor norms)
-    -> per draw: θ_meta^d = θ_pt + α·γ^d, θ_null^d = θ_pt + α·γ_null^d
-    -> arms × draws × seeds, each kept at every curve budget, evaluated on the same test goals
-    -> preconditions, paired comparisons with hierarchical-bootstrap CIs, MDD -> `study` artifact
+    -> extraction lr chosen for θ_ft on D_ext validation goals               (selection artifact)
+    -> θ_ao's auxiliary weight chosen on D_ext validation goals               (selection artifact)
+    -> the downstream auxiliary arm's weight chosen on D_down validation goals (selection artifact)
+    -> per γ draw d: θ_ft^d, θ_ao^d -> γ^d, γ_null^d (random, γ^d's per-tensor norms)
+    -> the gate: SFT, auxiliary SFT, SFT from θ_ao^d and from θ_ft^d, tested; CapVector's arms run only
+       when precondition (b) (θ_ao beats θ_ft on D_ext) and (c) (SFT from θ_ao beats SFT from θ_ft on
+       D_down) hold with intervals above 0 — otherwise the report says why the question is untestable
+    -> the tuning γ (tuning seed's θ_ao − θ_ft) -> α × λ chosen for CapVector (validation goals)
+    -> per draw: θ_meta^d = θ_pt + α·γ^d, θ_null^d = θ_pt + α·γ_null^d -> the remaining arms × seeds
+    -> every run kept at every budget (and its start, budget 0) and tested on the same test goals
+    -> preconditions (a)-(e), paired comparisons with hierarchical-bootstrap CIs, MDD -> `study` artifact
 
-Every value is chosen on validation goals by a `select` step whose parents are the evaluations it
-chose from, and every run that uses the value has the selection as an input (lineage: `selected_by`).
-Selection runs use `study.tuning_seed`, never a compared run's seed. The flow blocks only where a
-choice is needed to configure the next runs; everything else is submitted at once (flows.steps).
+The primary endpoint is the mean success over the declared budgets (the area under the
+success-vs-steps curve), and every value is chosen on validation goals at that same endpoint by a
+`select` step whose parents are the evaluations it chose from; every run that uses the value has the
+selection as an input (lineage: `selected_by`). Selection runs use `study.tuning_seed`, never a
+compared run's seed. The flow blocks only where a choice (or the gate) configures the next runs;
+everything else is submitted at once (flows.steps).
 """
 
 from __future__ import annotations
@@ -24,16 +30,20 @@ from prefect import flow
 from flows.pipeline import step_runner, submit_arm
 from flows.runs import publish_markdown, recorded_run
 from flows.steps import StepRunner, resolve
-from flows.study_config import SHARED_ARMS, StudyConfig
+from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from tasks.data import collect_demos_task
 from tasks.evaluation import evaluate_task
 from tasks.held_out_loss import held_out_loss_task
+from tasks.progress import emit
 from tasks.selection import chosen, select_task
-from tasks.study_analysis import analyse_study_task, label
+from tasks.study_analysis import analyse_study_task, gate_passed, label
 from tasks.study_report import load_study_report, study_markdown
 from tasks.training import snapshots_of, train_task
 from tasks.vectors import extract_task, merge_task, null_vector_task
 from tasks.workspace import Workspace, workspace_for
+
+SHARED = -1
+"""The draw of an arm shared by every γ draw (tasks.study_statistics.SHARED_DRAW)."""
 
 
 def _dump(model: Any) -> dict[str, Any]:
@@ -41,27 +51,46 @@ def _dump(model: Any) -> dict[str, Any]:
 
 
 def study_steps(cfg: StudyConfig) -> int:
-    """How many steps a study submits (progress shows `k/N`)."""
+    """How many steps a study submits when its gate passes (progress shows `k/N`)."""
     s = cfg.study
+    n_budgets, n_seeds, n_draws = len(cfg.curve_budgets), len(cfg.seeds), len(s.draws)
     cells = len(s.alphas) * len(s.lambda_scales)
-    runs = sum(len(cfg.seeds) * (1 if arm in SHARED_ARMS else len(s.draws)) for arm in s.arms)
+    runs = sum(n_seeds * (1 if arm in SHARED_ARMS else n_draws) for arm in s.arms)
     lr_grid = 3 * len(s.extraction_lrs) + 1  # runs, validations, held-out losses, selection
-    aux_grid = 2 * cells + 1 if "aux" in s.arms else 0  # runs, validations, selection
-    tuning_vector = 2  # θ_ao at the tuning seed, its γ
-    lambda_grid = len(s.alphas) + 2 * cells + 1  # merges, runs, validations, selection
-    per_draw = 15  # θ_ft, θ_ao, γ, γ_null, 2 validations, 6 held-out losses, 2 merges, θ_meta's validation
-    compared = runs * (1 + len(cfg.curve_budgets))  # the runs and their test evaluations
-    demos_and_pretraining, pt_validation, analysis = 5, 1, 1
+    ao_grid = 3 * len(s.extraction_aux_weights) + 1  # the same for θ_ao's auxiliary weight
+    aux_grid = (1 + n_budgets) * cells + 1 if "aux" in s.arms else 0  # runs, validations, selection
+    capvector = any(arm in s.arms for arm in ("capvector", "null_capvector", "meta_sft"))
+    lambda_grid = 1 + len(s.alphas) + (1 + n_budgets) * cells + 1 if capvector else 0  # γ, merges, ...
+    per_draw = 4 + 2 + 6  # θ_ft, θ_ao, γ, γ_null; their D_ext validations; held-out losses at 3 points
+    per_draw_merged = 3 if capvector else 0  # θ_meta, θ_null, θ_meta's D_ext validation
+    starts = (
+        1
+        + sum(  # budget-0 tests: θ_pt once, each draw's distinct starting checkpoints
+            1 for start in {_start_kind(arm) for arm in s.arms if arm not in SHARED_ARMS}
+        )
+        * n_draws
+    )
+    compared = runs * (1 + n_budgets)  # the runs and their test evaluations
+    demos_and_pretraining, pt_validation = 5, 1
+    analyses = 2 if s.gate else 1
     return (
         demos_and_pretraining
         + lr_grid
+        + ao_grid
         + aux_grid
-        + tuning_vector
         + lambda_grid
-        + per_draw * len(s.draws)
+        + (per_draw + per_draw_merged) * n_draws
         + pt_validation
+        + starts
         + compared
-        + analysis
+        + analyses
+    )
+
+
+def _start_kind(arm: str) -> str:
+    """Which checkpoint an arm's run starts from (runs starting alike share their budget-0 test)."""
+    return {"capvector": "meta", "meta_sft": "meta", "null_capvector": "null_meta"}.get(
+        arm, {"sft_from_ao": "auxiliary", "sft_from_ft": "standard"}.get(arm, "pretrained")
     )
 
 
@@ -71,6 +100,10 @@ class _Study:
     def __init__(self, cfg: StudyConfig, steps: StepRunner, workspace: Workspace):
         self.cfg, self.steps, self.workspace = cfg, steps, workspace
         self.analysis_inputs: dict[str, Any] = {}
+        self.test = cfg.eval_config()
+        self.validation_down = cfg.eval_config(validation=True)
+        self.validation_ext = cfg.extraction_validation()
+        self._started: dict[tuple[str, int], Any] = {}
 
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
@@ -79,18 +112,34 @@ class _Study:
         """The id of the checkpoint a run kept after `budget` steps (waits for the run)."""
         return snapshots_of(self.workspace, resolve(checkpoint))[budget]
 
+    def validate_curve(self, run: Any, what: str) -> list[Any]:
+        """A downstream run's validation evaluations at every curve budget (its endpoint's parts)."""
+        return [
+            self.submit(
+                evaluate_task,
+                f"validate {what} @ {b}",
+                {"checkpoint": self.at_budget(run, b)},
+                self.validation_down,
+            )
+            for b in self.cfg.curve_budgets
+        ]
+
     def select(
         self,
         name: str,
-        cells: list[tuple[dict[str, Any], Any]],
+        cells: list[tuple[dict[str, Any], list[Any]]],
         context: dict[str, Any],
         tiebreaks: list[Any] = (),
     ) -> str:
-        """A `select` step over (values, validation evaluation) cells, ties broken by the `tiebreaks`
-        (held-out loss measurements, one per cell) when given; its id (waits for it)."""
-        inputs = {f"cell {i}": evaluation for i, (_, evaluation) in enumerate(cells)}
+        """A `select` step over (values, validation evaluations) cells — a cell's score is the mean over
+        its evaluations — ties broken by the `tiebreaks` (held-out loss measurements, one per cell)
+        when given; its id (waits for it)."""
+        inputs = {f"cell {i} @ {j}": e for i, (_, evals) in enumerate(cells) for j, e in enumerate(evals)}
         inputs |= {f"loss {i}": m for i, m in enumerate(tiebreaks)}
-        candidates = [{"values": v, "evaluation": f"cell {i}"} for i, (v, _) in enumerate(cells)]
+        candidates = [
+            {"values": v, "evaluations": [f"cell {i} @ {j}" for j in range(len(evals))]}
+            for i, (v, evals) in enumerate(cells)
+        ]
         for i, c in enumerate(candidates[: len(tiebreaks)]):
             c["tiebreak"] = f"loss {i}"
         config = {"name": name, "context": context, "candidates": candidates}
@@ -98,232 +147,292 @@ class _Study:
         self.analysis_inputs[label("selection", name)] = selection
         return selection
 
+    def test_start(self, checkpoint: Any, arm: str, draw: int, what: str) -> None:
+        """Budget 0: the checkpoint a run starts from, tested once and counted for every seed."""
+        key = (_start_kind(arm), draw)
+        if key not in self._started:
+            self._started[key] = self.submit(
+                evaluate_task, f"test {what} @ 0", {"checkpoint": checkpoint}, self.test
+            )
+        for seed in self.cfg.seeds:
+            self.analysis_inputs[label("test", arm, draw, seed, 0)] = self._started[key]
+
+    def test_runs(self, runs: dict[tuple[str, int, int], Any]) -> None:
+        """Every compared run at every budget, on the same test goals."""
+        for (arm, d, seed), run in runs.items():
+            for b, checkpoint in snapshots_of(self.workspace, resolve(run)).items():
+                step = f"test {arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed} @ {b}"
+                self.analysis_inputs[label("test", arm, d, seed, b)] = self.submit(
+                    evaluate_task, step, {"checkpoint": checkpoint}, self.test
+                )
+
+    def analyse(self, stage: str, design: dict[str, Any]) -> str:
+        inputs = {k: resolve(v) for k, v in self.analysis_inputs.items()}
+        name = f"analyse study {self.cfg.name}" + (" (gate)" if stage == "gate" else "")
+        return resolve(self.submit(analyse_study_task, name, inputs, {**design, "stage": stage}))
+
+
+def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[str, Any]:
+    """The extraction lr for θ_ft and θ_ao's auxiliary weight, each chosen on D_ext validation goals
+    (ties: lower held-out action loss) from runs at the tuning seed; returns the choices and the
+    tuning seed's θ_ft and θ_ao (the tuning γ's ends)."""
+    cfg, s, submit, tune = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seed
+    inputs = {"data": data["extraction"], "init": pretrained}
+
+    def grid(what: str, values: dict[Any, Any], extra: dict[str, Any]) -> tuple[dict, list, list]:
+        runs, cells, losses = {}, [], []
+        for value, config in values.items():
+            runs[value] = submit(train_task, f"tune extraction {what}={value}", {**inputs, **extra}, config)
+            checkpoint = {"checkpoint": runs[value]}
+            cells.append(
+                (value, [submit(evaluate_task, f"validate {what}={value}", checkpoint, study.validation_ext)])
+            )
+            losses.append(
+                submit(
+                    held_out_loss_task,
+                    f"held-out loss {what}={value}",
+                    {**checkpoint, "data": data["heldout"]},
+                    {},
+                )
+            )
+        return runs, cells, losses
+
+    ft_runs, cells, losses = grid(
+        "θ_ft lr", {lr: cfg.extraction_run(False, tune, lr) for lr in s.extraction_lrs}, {}
+    )
+    lr_selection = study.select(
+        "extraction lr", [({"lr": v}, e) for v, e in cells], {"run": "θ_ft", "seed": tune}, losses
+    )
+    lr = chosen(study.workspace, lr_selection)["lr"]
+    ao_configs = {w: cfg.extraction_run(True, tune, lr, w) for w in s.extraction_aux_weights}
+    ao_runs, cells, losses = grid("θ_ao aux weight", ao_configs, {"selection": lr_selection})
+    weight_selection = study.select(
+        "extraction auxiliary weight",
+        [({"aux_weight": v}, e) for v, e in cells],
+        {"run": "θ_ao", "seed": tune},
+        losses,
+    )
+    weight = chosen(study.workspace, weight_selection)["aux_weight"]
+    return {
+        "lr": lr,
+        "aux_weight": weight,
+        "lr_selection": lr_selection,
+        "weight_selection": weight_selection,
+        "standard": ft_runs[lr],
+        "auxiliary": ao_runs[weight],
+    }
+
+
+def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, Any]) -> dict[str, Any]:
+    """θ_ft^d and θ_ao^d with the chosen values, γ^d, its null vector, their D_ext validations."""
+    cfg, submit = study.cfg, study.submit
+    inputs = {
+        "data": stage["data"]["extraction"],
+        "init": stage["pretrained"],
+        "selection": extraction["lr_selection"],
+    }
+    lr, weight = extraction["lr"], extraction["aux_weight"]
+    ft = submit(train_task, f"draw {d} standard SFT θ_ft", inputs, cfg.extraction_run(False, d, lr))
+    ao_inputs = {**inputs, "selection aux": extraction["weight_selection"]}
+    ao = submit(
+        train_task, f"draw {d} auxiliary SFT θ_ao", ao_inputs, cfg.extraction_run(True, d, lr, weight)
+    )
+    vector = submit(
+        extract_task,
+        f"draw {d} capability vector γ",
+        {"minuend": ao, "subtrahend": ft, "base": stage["pretrained"]},
+        cfg.vector,
+    )
+    null = submit(null_vector_task, f"draw {d} null vector", {"vector": vector}, {"seed": d})
+    for which, run in (("ft", ft), ("ao", ao)):
+        study.analysis_inputs[label("extval", which, d)] = submit(
+            evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, study.validation_ext
+        )
+    study.analysis_inputs[label("vector", d)] = vector
+    study.analysis_inputs[label("ft", d)] = ft
+    return {**stage, "standard": ft, "auxiliary": ao, "vector": vector, "null_vector": null}
+
+
+def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: Any) -> None:
+    """Each extraction run's held-out action loss at half, three quarters and the end (precondition a)."""
+    for d, stage in draws.items():
+        for which in ("standard", "auxiliary"):
+            kept = snapshots_of(study.workspace, resolve(stage[which]))
+            for b in kept:
+                study.analysis_inputs[label("loss", which, d, b)] = study.submit(
+                    held_out_loss_task,
+                    f"held-out loss draw {d} {which} @ {b}",
+                    {"checkpoint": kept[b], "data": heldout},
+                    {},
+                )
+
 
 def _run_study(study: _Study) -> dict[str, Any]:
     cfg, s, submit = study.cfg, study.cfg.study, study.submit
     tune = s.tuning_seed
-    validation_down = cfg.eval_config(validation=True)
-    validation_ext = cfg.extraction_validation()
+    arms = s.arms
 
+    # Demonstrations and θ_pt.
     data = {
         split: submit(collect_demos_task, f"demos {split}", {}, cfg.demo_config(split))
         for split in ("pretrain", "extraction", "downstream")
     }
     data["heldout"] = submit(collect_demos_task, "demos extraction (held out)", {}, cfg.heldout_demo_config())
     pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
-    base_stage = {"data": data, "pretrained": pretrained}
+    base = {"data": data, "pretrained": pretrained}
+    study.analysis_inputs[label("extval", "pt", SHARED)] = submit(
+        evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
+    )
 
-    # Everything that needs no choice yet: the lr grid, the auxiliary grid, SFT's runs.
-    extraction_inputs = {"data": data["extraction"], "init": pretrained}
-    lr_runs, lr_cells, lr_losses = {}, [], []
-    for lr in s.extraction_lrs:
-        step = f"tune extraction θ_ft lr={lr}"
-        lr_runs[lr] = submit(train_task, step, extraction_inputs, cfg.extraction_run(False, tune, lr))
-        validation = submit(
-            evaluate_task, f"validate θ_ft lr={lr}", {"checkpoint": lr_runs[lr]}, validation_ext
+    # Runs that need no choice: SFT, the auxiliary arm's grid (tuning seed).
+    runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
+    for seed in cfg.seeds:
+        runs["sft", SHARED, seed] = submit_arm(
+            study.steps, cfg, base, "sft", seed, step_config=cfg.study_downstream("sft", seed)
         )
-        lr_cells.append(({"lr": lr}, validation))
-        held_out = {"checkpoint": lr_runs[lr], "data": data["heldout"]}
-        lr_losses.append(submit(held_out_loss_task, f"held-out loss θ_ft lr={lr}", held_out, {}))
-    tuned_aux = "aux" in s.arms
-    aux_runs = [
+    aux_grid = [
         (
             w,
             submit_arm(
                 study.steps,
                 cfg,
-                base_stage,
+                base,
                 "aux",
                 tune,
                 label=f"tune aux weight={w}",
                 step_config=cfg.study_downstream("aux", tune, aux_weight=w),
             ),
         )
-        for w in (s.aux_weights if tuned_aux else [])
+        for w in (s.aux_weights if "aux" in arms else [])
     ]
-    runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
-    shared = -1
-    for seed in cfg.seeds:
-        runs["sft", shared, seed] = submit_arm(
-            study.steps, cfg, base_stage, "sft", seed, step_config=cfg.study_downstream("sft", seed)
-        )
-    pt_validation = submit(
-        evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, validation_ext
-    )
-    study.analysis_inputs[label("extval", "pt", shared)] = pt_validation
+    for arm in [a for a in SHARED_ARMS if a in arms]:
+        study.test_start(pretrained, arm, SHARED, "θ_pt")
 
-    # Choices on validation goals at the selection budget.
-    budget = cfg.select_budget
+    # Choices for the extraction runs, then every draw's θ_ft, θ_ao, γ and null vector.
+    extraction = _extraction(study, data, pretrained)
+    draws = {d: _draw(study, d, base, extraction) for d in s.draws}
 
-    def validate(values: dict[str, Any], run: Any, what: str) -> tuple[dict[str, Any], Any]:
-        step = f"validate {what} @ {budget}"
-        return values, submit(
-            evaluate_task, step, {"checkpoint": study.at_budget(run, budget)}, validation_down
-        )
-
-    # (a) the extraction lr; the auxiliary weight (θ_ao is trained with the weight the aux arm uses).
-    lr_selection = study.select("extraction lr", lr_cells, {"run": "θ_ft", "seed": tune}, lr_losses)
-    lr = chosen(study.workspace, lr_selection)["lr"]
-    extraction_choices = {"selection": lr_selection}
-    aux_weight = cfg.aux.weight
-    if tuned_aux:
-        aux_cells = [validate({"aux_weight": w}, run, f"aux weight={w}") for w, run in aux_runs]
-        aux_selection = study.select("auxiliary weight", aux_cells, {"seed": tune, "budget": budget})
-        aux_weight = chosen(study.workspace, aux_selection)["aux_weight"]
-        extraction_choices["selection aux"] = aux_selection
+    # The downstream auxiliary weight, on the same endpoint the study is judged at.
+    chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
+    if aux_grid:
+        cells = [({"aux_weight": w}, study.validate_curve(run, f"aux weight={w}")) for w, run in aux_grid]
+        aux_selection = study.select("auxiliary weight", cells, {"seed": tune, "endpoint": cfg.curve_budgets})
+        chosen_values["aux_weight"] = chosen(study.workspace, aux_selection)["aux_weight"]
         for seed in cfg.seeds:
-            runs["aux", shared, seed] = submit_arm(
-                study.steps,
-                cfg,
-                base_stage,
-                "aux",
-                seed,
-                selection=aux_selection,
-                step_config=cfg.study_downstream("aux", seed, aux_weight=aux_weight),
+            step = cfg.study_downstream("aux", seed, aux_weight=chosen_values["aux_weight"])
+            runs["aux", SHARED, seed] = submit_arm(
+                study.steps, cfg, base, "aux", seed, selection=aux_selection, step_config=step
             )
 
-    # The tuning γ (tuning seed, never a compared draw) and the α × λ grid on it.
-    inputs = {**extraction_inputs, **extraction_choices}  # θ_ao's: the lr and the auxiliary weight
-    standard_inputs = {**extraction_inputs, "selection": lr_selection}  # θ_ft uses the lr only
-    tuning_ao = submit(
-        train_task, "tune extraction θ_ao", inputs, cfg.extraction_run(True, tune, lr, aux_weight)
-    )
-    tuning_stage = {
-        **base_stage,
+    # The gate's arms: SFT from each draw's θ_ao and θ_ft.
+    for d, stage in draws.items():
+        for arm in [a for a in ("sft_from_ao", "sft_from_ft") if a in arms]:
+            study.test_start(
+                stage["auxiliary" if arm == "sft_from_ao" else "standard"], arm, d, f"draw {d} {arm} start"
+            )
+            for seed in cfg.seeds:
+                runs[arm, d, seed] = submit_arm(
+                    study.steps, cfg, stage, arm, seed, step_config=cfg.study_downstream(arm, seed)
+                )
+    study.test_runs({k: v for k, v in runs.items() if k[0] in GATE_ARMS})
+    _held_out_losses(study, draws, data["heldout"])
+    design = _design(cfg, chosen_values)
+    if s.gate:
+        gate_report = study.analyse("gate", design)
+        if not gate_passed(study.workspace, gate_report):
+            emit(f"[study {cfg.name}] gate: preconditions (b), (c) not shown; CapVector's arms are not run")
+            return {"report": gate_report, "selections": _selections(study)}
+
+    # CapVector's α × λ on the tuning γ, then each draw's θ_meta and θ_null and the remaining arms.
+    rest = [arm for arm in ("meta_sft", "capvector", "null_capvector") if arm in arms]
+    tuning = {
+        **base,
         "vector": submit(
             extract_task,
             "tuning capability vector γ",
-            {"minuend": tuning_ao, "subtrahend": lr_runs[lr], "base": pretrained},
+            {"minuend": extraction["auxiliary"], "subtrahend": extraction["standard"], "base": pretrained},
             cfg.vector,
         ),
     }
-    grid_runs = []
+    grid_cells = []
     for alpha in s.alphas:
         meta = submit(
             merge_task,
             f"tune merge θ_meta α={alpha}",
-            {"base": pretrained, "vector": tuning_stage["vector"]},
+            {"base": pretrained, "vector": tuning["vector"]},
             cfg.merge_config(alpha),
         )
         for scale in s.lambda_scales:
+            what = f"capvector α={alpha} λ={scale}"
             run = submit_arm(
                 study.steps,
                 cfg,
-                tuning_stage,
+                tuning,
                 "capvector",
                 tune,
                 meta=meta,
-                label=f"tune capvector α={alpha} λ={scale}",
+                label=f"tune {what}",
                 step_config=cfg.study_downstream("capvector", tune, lambda_scale=scale),
             )
-            grid_runs.append(({"alpha": alpha, "lambda_scale": scale}, run))
-
-    # Every draw's θ_ft, θ_ao, γ and null vector (while the grid trains).
-    draws: dict[int, dict[str, Any]] = {}
-    for d in s.draws:
-        ft = submit(
-            train_task, f"draw {d} standard SFT θ_ft", standard_inputs, cfg.extraction_run(False, d, lr)
-        )
-        ao = submit(
-            train_task, f"draw {d} auxiliary SFT θ_ao", inputs, cfg.extraction_run(True, d, lr, aux_weight)
-        )
-        vector = submit(
-            extract_task,
-            f"draw {d} capability vector γ",
-            {"minuend": ao, "subtrahend": ft, "base": pretrained},
-            cfg.vector,
-        )
-        null = submit(null_vector_task, f"draw {d} null vector", {"vector": vector}, {"seed": d})
-        for which, run in (("ft", ft), ("ao", ao)):
-            study.analysis_inputs[label("extval", which, d)] = submit(
-                evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, validation_ext
-            )
-        draws[d] = {**base_stage, "standard": ft, "auxiliary": ao, "vector": vector, "null_vector": null}
-        for arm in ("sft_from_ao", "sft_from_ft"):
-            if arm in s.arms:
-                for seed in cfg.seeds:
-                    runs[arm, d, seed] = submit_arm(
-                        study.steps, cfg, draws[d], arm, seed, step_config=cfg.study_downstream(arm, seed)
-                    )
-
-    grid_cells = [validate(v, run, f"capvector α={v['alpha']} λ={v['lambda_scale']}") for v, run in grid_runs]
-    grid_selection = study.select("α and λ", grid_cells, {"seed": tune, "budget": budget})
+            grid_cells.append(({"alpha": alpha, "lambda_scale": scale}, run, what))
+    cells = [(values, study.validate_curve(run, what)) for values, run, what in grid_cells]
+    grid_selection = study.select("α and λ", cells, {"seed": tune, "endpoint": cfg.curve_budgets})
     best = chosen(study.workspace, grid_selection)
-    alpha, scale = best["alpha"], best["lambda_scale"]
-
-    merge = cfg.merge_config(alpha)
+    chosen_values |= {"alpha": best["alpha"], "lambda_scale": best["lambda_scale"]}
+    merge = cfg.merge_config(best["alpha"])
     for d, stage in draws.items():
-        stage["meta"] = submit(
-            merge_task,
-            f"draw {d} merge θ_meta",
-            {"base": pretrained, "vector": stage["vector"], "selection": grid_selection},
-            merge,
-        )
-        stage["null_meta"] = submit(
-            merge_task,
-            f"draw {d} merge θ_null",
-            {"base": pretrained, "vector": stage["null_vector"], "selection": grid_selection},
-            merge,
-        )
+        for which, vector in (("meta", "vector"), ("null_meta", "null_vector")):
+            name = "θ_meta" if which == "meta" else "θ_null"
+            merge_inputs = {"base": pretrained, "vector": stage[vector], "selection": grid_selection}
+            stage[which] = submit(merge_task, f"draw {d} merge {name}", merge_inputs, merge)
         study.analysis_inputs[label("extval", "meta", d)] = submit(
-            evaluate_task, f"validate draw {d} θ_meta on D_ext", {"checkpoint": stage["meta"]}, validation_ext
+            evaluate_task,
+            f"validate draw {d} θ_meta on D_ext",
+            {"checkpoint": stage["meta"]},
+            study.validation_ext,
         )
-        for arm in ("meta_sft", "capvector", "null_capvector"):
-            if arm in s.arms:
-                for seed in cfg.seeds:
-                    runs[arm, d, seed] = submit_arm(
-                        study.steps,
-                        cfg,
-                        stage,
-                        arm,
-                        seed,
-                        selection=grid_selection,
-                        step_config=cfg.study_downstream(
-                            arm, seed, lambda_scale=scale if arm != "meta_sft" else None
-                        ),
-                    )
-
-    # Test goals: every compared run at every budget; the extraction runs' held-out losses.
-    test = cfg.eval_config()
-    for (arm, d, seed), run in runs.items():
-        for b, checkpoint in snapshots_of(study.workspace, resolve(run)).items():
-            step = f"test {arm}" + ("" if d == shared else f" draw {d}") + f" seed {seed} @ {b}"
-            study.analysis_inputs[label("test", arm, d, seed, b)] = submit(
-                evaluate_task, step, {"checkpoint": checkpoint}, test
-            )
-    for d, stage in draws.items():
-        for which in ("standard", "auxiliary"):
-            kept = snapshots_of(study.workspace, resolve(stage[which]))
-            for b in kept:  # half, three quarters, the end
-                study.analysis_inputs[label("loss", which, d, b)] = submit(
-                    held_out_loss_task,
-                    f"held-out loss draw {d} {which} @ {b}",
-                    {"checkpoint": kept[b], "data": data["heldout"]},
-                    {},
+        for arm in rest:
+            start = stage["null_meta" if arm == "null_capvector" else "meta"]
+            study.test_start(start, arm, d, f"draw {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}")
+            scale = None if arm == "meta_sft" else best["lambda_scale"]
+            for seed in cfg.seeds:
+                step = cfg.study_downstream(arm, seed, lambda_scale=scale)
+                runs[arm, d, seed] = submit_arm(
+                    study.steps, cfg, stage, arm, seed, selection=grid_selection, step_config=step
                 )
+    study.test_runs({k: v for k, v in runs.items() if k[0] in rest})
+    report = study.analyse("final", _design(cfg, chosen_values))
+    return {"report": report, "selections": _selections(study)}
 
-    inputs = {k: resolve(v) for k, v in study.analysis_inputs.items()}
-    design = {
+
+def _selections(study: _Study) -> dict[str, str]:
+    return {k: resolve(v) for k, v in study.analysis_inputs.items() if k.startswith("selection")}
+
+
+def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]:
+    """What the analysis needs besides the evaluations (tasks.study_analysis.StudyDesign)."""
+    s = cfg.study
+    return {
         "name": cfg.name,
         "arms": list(s.arms),
         "draws": list(s.draws),
         "seeds": list(cfg.seeds),
-        "primary_budget": s.primary_budget,
+        "endpoint_budgets": cfg.curve_budgets,
         "final_budget": cfg.downstream.steps,
         "extraction_steps": cfg.extraction.steps,
         "flat_tolerance": s.flat_tolerance,
         "non_inferiority_margin": s.non_inferiority_margin,
         "n_boot": s.n_boot,
-        "chosen": {"extraction_lr": lr, "aux_weight": aux_weight, "alpha": alpha, "lambda_scale": scale},
+        "gate": s.gate,
+        "chosen": chosen_values,
         "grids": {
             "extraction_lr": list(s.extraction_lrs),
-            "aux_weight": list(s.aux_weights) if tuned_aux else [aux_weight],
+            "extraction_aux_weight": list(s.extraction_aux_weights),
+            "aux_weight": list(s.aux_weights),
             "alpha": list(s.alphas),
             "lambda_scale": list(s.lambda_scales),
         },
     }
-    report = resolve(submit(analyse_study_task, f"analyse study {cfg.name}", inputs, design))
-    return {"report": report, "selections": {k: v for k, v in inputs.items() if k.startswith("selection")}}
 
 
 @flow(name="study", log_prints=True, task_runner=step_runner(), persist_result=False)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, model_validator
 
 from capvector_core.demos import UNIT_SEEDS, DemoConfig
 from capvector_core.evaluation import EvalConfig
@@ -20,6 +20,8 @@ from tasks.training import TrainStepConfig
 StudyArm = Literal["sft", "aux", "meta_sft", "capvector", "null_capvector", "sft_from_ao", "sft_from_ft"]
 SHARED_ARMS = ("sft", "aux")
 """Arms that start from θ_pt: one run per training seed, shared by every γ draw."""
+GATE_ARMS: tuple[StudyArm, ...] = ("sft", "aux", "sft_from_ao", "sft_from_ft")
+"""Arms that test the preconditions; the others run only when the gate passes."""
 ALL_ARMS: tuple[StudyArm, ...] = (
     "sft",
     "aux",
@@ -32,32 +34,49 @@ ALL_ARMS: tuple[StudyArm, ...] = (
 
 
 class StudySettings(BaseModel):
+    """The experiment's design, declared before it runs (a preset is its pre-registration).
+
+    Args:
+        draws: extraction seeds; each draw trains its own θ_ft and θ_ao, hence its own γ.
+        tuning_seed: seed of the runs values are chosen from (never a compared run's seed or draw).
+        extraction_lrs: θ_ft's lr grid, chosen on D_ext validation goals (ties: lower held-out loss).
+        extraction_aux_weights: θ_ao's auxiliary-weight grid, chosen on D_ext validation goals (ties:
+            lower held-out action loss): γ comes from the strongest objective the extraction set
+            supports, not from the downstream arm's choice.
+        heldout_episodes: held-out D_ext demonstrations per task (convergence and tie-breaks).
+        flat_tolerance: converged when the held-out action loss moved less than this fraction over the
+            second half of the extraction run.
+        non_inferiority_margin: points; θ_meta is "not worse" than θ_pt when the CI's low end is above
+            −margin.
+        alphas: merge coefficients of the α × λ grid.
+        lambda_scales: λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (tasks.training: orthogonal.scale).
+        aux_weights: the downstream auxiliary arm's grid: as many cells as α × λ, so both arms get the
+            same tuning budget.
+        budgets: downstream steps at which every run is kept and tested besides the final one. The
+            primary endpoint is the mean success over these budgets and the final one (the area under
+            the success-vs-steps curve); values are chosen on validation goals at that same endpoint.
+        arms: the compared arms (sft and capvector are required).
+        n_boot: bootstrap resamples per interval.
+        gate: run the arms that test the preconditions (SFT, auxiliary SFT, SFT from θ_ao and from θ_ft)
+            first and the CapVector arms only when (b) and (c) hold with intervals above 0; otherwise the
+            report says the question is untestable on this testbed.
+    """
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    draws: list[int] = Field(default_factory=lambda: [0, 1], min_length=1)
-    """Extraction seeds: each draw trains its own θ_ft, θ_ao, hence its own γ."""
+    draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
     tuning_seed: int = 1000
-    """Downstream (and extraction) seed of the runs values are chosen from: never a compared run's."""
     extraction_lrs: list[float] = Field(min_length=1)
-    """Extraction lr grid, chosen by θ_ft's success on D_ext validation goals (draw 0's seed)."""
+    extraction_aux_weights: list[float] = Field(min_length=1)
     heldout_episodes: int = Field(5, ge=1)
-    """Held-out D_ext demonstrations per task, for the convergence check."""
     flat_tolerance: float = Field(0.05, gt=0, lt=1)
-    """Converged: held-out action loss moved by less than this fraction over the second half."""
     non_inferiority_margin: float = Field(5.0, gt=0)
-    """Points: θ_meta is "not worse" than θ_pt when the CI's low end is above −margin."""
     alphas: list[float] = Field(min_length=1)
     lambda_scales: list[float] = Field(min_length=1)
-    """λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (tasks.training: orthogonal.scale)."""
     aux_weights: list[float] = Field(min_length=1)
-    """The auxiliary arm's grid: as many cells as α × λ, so both get the same tuning budget."""
-    primary_budget: int = Field(gt=0)
-    """The declared primary endpoint: downstream steps at which the comparison is judged."""
-    budgets: list[int] = Field(default_factory=list)
-    """Further points of the success-vs-steps curves (the primary and final budgets are always in)."""
+    budgets: list[int] = Field(min_length=1)
     arms: list[StudyArm] = Field(default_factory=lambda: list(ALL_ARMS))
     n_boot: int = Field(2000, ge=100)
-    select_at: Literal["primary", "final"] = "primary"
-    """Which budget's validation success a grid is chosen on (its runs keep both)."""
+    gate: bool = True
 
     @model_validator(mode="after")
     def _design(self) -> StudySettings:
@@ -67,15 +86,23 @@ class StudySettings(BaseModel):
                 f"study.aux_weights has {len(self.aux_weights)} values, the α × λ grid {cells} cells: "
                 "the auxiliary arm is tuned on the same budget as CapVector"
             )
-        for name in ("draws", "alphas", "lambda_scales", "aux_weights", "extraction_lrs", "budgets"):
+        grids = ("draws", "alphas", "lambda_scales", "aux_weights", "extraction_lrs")
+        grids += ("extraction_aux_weights",)
+        for name in (*grids, "budgets"):
             values = getattr(self, name)
             if len(set(values)) != len(values):
                 raise ValueError(f"study.{name} has repeated values: {values}")
-        if any(x <= 0 for x in self.extraction_lrs + self.lambda_scales + self.aux_weights):
-            raise ValueError("study.extraction_lrs, lambda_scales and aux_weights must be positive")
+        positive = ("extraction_lrs", "lambda_scales", "aux_weights", "extraction_aux_weights")
+        bad = [name for name in positive if any(x <= 0 for x in getattr(self, name))]
+        if bad:
+            raise ValueError(f"study.{', study.'.join(bad)} must be positive")
         missing = {"sft", "capvector"} - set(self.arms)
         if missing:
             raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")
+        if self.gate:
+            lacking = sorted(set(GATE_ARMS) - set(self.arms))
+            if lacking:
+                raise ValueError(f"study.gate needs arms {lacking}: it tests preconditions b and c with them")
         return self
 
 
@@ -85,7 +112,7 @@ class StudyConfig(PipelineConfig):
     @model_validator(mode="after")
     def _budgets_fit(self) -> StudyConfig:
         steps = self.downstream.steps
-        bad = [b for b in [self.study.primary_budget, *self.study.budgets] if not 0 < b < steps]
+        bad = [b for b in self.study.budgets if not 0 < b < steps]
         if bad:
             raise ValueError(
                 f"study budgets {bad} must lie strictly between 0 and downstream.steps ({steps}), "
@@ -103,12 +130,9 @@ class StudyConfig(PipelineConfig):
     # ------------------------------------------------------------ derived
     @property
     def curve_budgets(self) -> list[int]:
-        """Every budget a downstream run is evaluated at, the final one last."""
-        return sorted({self.study.primary_budget, *self.study.budgets}) + [self.downstream.steps]
-
-    @property
-    def select_budget(self) -> int:
-        return self.study.primary_budget if self.study.select_at == "primary" else self.downstream.steps
+        """Every budget a downstream run is kept and evaluated at, the final one last; the primary
+        endpoint is the mean success over them."""
+        return sorted(self.study.budgets) + [self.downstream.steps]
 
     @property
     def extraction_snapshots(self) -> list[int]:

@@ -55,7 +55,7 @@ def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
             "name": "α and λ",
             "context": {"arm": arm, "seed": seed},
             "candidates": [
-                {"values": {"alpha": c["alpha"], "lambda": c["lambda"]}, "evaluation": f"cell {i}"}
+                {"values": {"alpha": c["alpha"], "lambda": c["lambda"]}, "evaluations": [f"cell {i}"]}
                 for i, c in enumerate(cells)
             ],
         }

@@ -20,17 +20,19 @@ from tasks.workspace import Workspace, provenance, workspace_for
 
 SELECTION_KIND = "selection"
 RULE = (
-    "highest mean validation success over tasks; a tie goes to the lower held-out loss where measured "
-    "(a saturated validation set cannot tell candidates apart), then to the earlier candidate"
+    "highest mean validation success over tasks (and over the candidate's budgets when it has several: "
+    "the study's endpoint is the mean over its declared budgets); a tie goes to the lower held-out loss "
+    "where measured (a saturated validation set cannot tell candidates apart), then to the earlier candidate"
 )
 
 
 class Candidate(BaseModel):
-    """One point of the grid: its values, the input label of its validation evaluation and, optionally,
-    of a held-out loss measurement (tasks.held_out_loss) that breaks ties."""
+    """One point of the grid: its values, the input labels of its validation evaluations (one per budget
+    its endpoint averages) and, optionally, of a held-out loss measurement (tasks.held_out_loss) that
+    breaks ties."""
 
     values: dict[str, Any]
-    evaluation: str = Field(min_length=1)
+    evaluations: list[str] = Field(min_length=1)
     tiebreak: str | None = None
 
 
@@ -41,7 +43,7 @@ class SelectionConfig(BaseModel):
 
     @model_validator(mode="after")
     def _distinct(self) -> SelectionConfig:
-        labels = [c.evaluation for c in self.candidates]
+        labels = [e for c in self.candidates for e in c.evaluations]
         if len(set(labels)) != len(labels):
             raise ValueError(f"selection {self.name!r}: candidates share an evaluation label: {labels}")
         if len({c.tiebreak is None for c in self.candidates}) > 1:
@@ -53,12 +55,13 @@ class SelectionConfig(BaseModel):
 
 def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     cfg = SelectionConfig.model_validate(config)
-    missing = [x for c in cfg.candidates for x in (c.evaluation, c.tiebreak) if x and x not in inputs]
+    missing = [x for c in cfg.candidates for x in (*c.evaluations, c.tiebreak) if x and x not in inputs]
     if missing:
         raise ValueError(f"step {step!r}: no input for candidate evaluation(s) {missing}")
 
     def produce(key: str) -> str:
-        eval_ids = [inputs[c.evaluation] for c in cfg.candidates]
+        per_candidate = [[inputs[e] for e in c.evaluations] for c in cfg.candidates]
+        eval_ids = [e for ids in per_candidate for e in ids]
         scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=eval_ids)}
         protocols = {scores[e].fingerprint for e in eval_ids}
         if len(protocols) != 1:
@@ -66,12 +69,12 @@ def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: 
         rows = [
             {
                 **c.values,
-                "evaluation_id": e,
-                "checkpoint_id": scores[e].checkpoint_id,
-                "validation_success": scores[e].mean_success,
+                "evaluation_ids": ids,
+                "checkpoint_ids": [scores[e].checkpoint_id for e in ids],
+                "validation_success": sum(scores[e].mean_success for e in ids) / len(ids),
                 **({"held_out_loss": measured_loss(workspace, inputs[c.tiebreak])} if c.tiebreak else {}),
             }
-            for c, e in zip(cfg.candidates, eval_ids, strict=True)
+            for c, ids in zip(cfg.candidates, per_candidate, strict=True)
         ]
         # max keeps the first of equals
         best = max(rows, key=lambda r: (r["validation_success"], -r.get("held_out_loss", 0.0)))

@@ -1,31 +1,40 @@
 """Step: analyse a study — preconditions, paired comparisons, curves, design MDD — into a `study` artifact.
 
 Inputs are labelled (`label`): `test/<arm>/<draw>/<seed>/<budget>` (test-goal evaluations of the
-compared runs; draw -1 for arms shared by every draw), `extval/<ft|ao|meta|pt>/<draw>` (D_ext
-validation evaluations), `loss/<standard|auxiliary>/<draw>/<budget>` (held-out action losses) and
-`selection/<name>`. Scores come from the evaluations' episodes (artifacts.scores.read_episodes); the
-statistics are tasks.study_statistics'. The document holds no timings (its id depends on results
+compared runs, budget 0 being the checkpoint a run starts from; draw -1 for arms shared by every
+draw), `extval/<ft|ao|meta|pt>/<draw>` (D_ext validation evaluations),
+`loss/<standard|auxiliary>/<draw>/<budget>` (held-out action losses), `vector/<draw>` and `ft/<draw>`
+(γ^d and θ_ft^d, for precondition e) and `selection/<name>`. The primary endpoint is each goal's
+success averaged over the declared budgets (`study_statistics.ENDPOINT`). A `gate` stage analyses the
+arms that test preconditions (b) and (c) before CapVector's arms run (`gate_passed`). Scores come
+from the evaluations' episodes (artifacts.scores.read_episodes); the statistics are
+tasks.study_statistics'. The document holds no timings (its id depends on results
 only); the rendered report reads speeds from the checkpoints' records.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
-from typing import Any
+from typing import Any, Literal
 
+import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict
 
 from artifacts.scores import read_episodes, read_scores
+from capvector_core.safetensors_io import Checkpoint
 from tasks.caching import cached_step
 from tasks.held_out_loss import measured_loss
 from tasks.prefect_task import pipeline_task
 from tasks.study_statistics import (
+    ENDPOINT,
     SHARED_DRAW,
     Comparison,
     CurvePoint,
     Design,
     VarianceComponents,
+    endpoint_rows,
     paired_difference,
     smallest_design,
     success_curve,
@@ -56,12 +65,15 @@ class StudyDesign(BaseModel):
     arms: list[str]
     draws: list[int]
     seeds: list[int]
-    primary_budget: int
+    endpoint_budgets: list[int]
+    """The primary endpoint: mean success over these budgets (the final one included)."""
     final_budget: int
     extraction_steps: int
     flat_tolerance: float
     non_inferiority_margin: float
     n_boot: int
+    gate: bool = True
+    stage: Literal["gate", "final"] = "final"
     chosen: dict[str, float]
     grids: dict[str, list[float]]
 
@@ -79,12 +91,15 @@ class Precondition(BaseModel):
     claim: str
     holds: bool | None
     """True: shown; False: contradicted; None: not shown either way (the CI includes zero)."""
+    detail_values: dict[str, float] = {}
     detail: str
     comparison: Comparison | None = None
 
 
 class StudyReport(BaseModel):
     design: StudyDesign
+    gate: str | None = None
+    """Why CapVector's arms did not run (the gate failed), or None (they ran, or no gate)."""
     goals_per_task: int
     tasks: list[str]
     preconditions: list[Precondition]
@@ -92,12 +107,15 @@ class StudyReport(BaseModel):
     curves: dict[str, list[CurvePoint]]
     selections: dict[str, str]
     convergence: list[dict[str, Any]]
+    per_task: dict[str, dict[str, float]] = {}
+    """Arm -> task -> mean success (points) at the primary endpoint, over draws, seeds and goals."""
     final_checkpoints: dict[str, list[str]]
     """Arm -> its runs' final checkpoints (where the rendered report reads time per step)."""
     designs_for_5_points: dict[str, Design | None]
-    """`arm-baseline` -> the cheapest design whose MDD at the primary endpoint would be ≤ 5 points, sized
-    from this study's variance components (None: none in the searched grid; components this study
-    could not separate count as 0, so it is a lower bound then)."""
+    """`arm-baseline` -> the cheapest design, at least as large as this one and never under 2 draws × 2
+    seeds, whose MDD at the primary endpoint would be ≤ 5 points, sized from this study's variance
+    components (None: none in the searched grid; components this study could not separate count as 0,
+    so it is a lower bound then)."""
 
 
 def _parse(inputs: dict[str, str], kind: str) -> list[tuple[list[str], str]]:
@@ -108,7 +126,8 @@ def _episodes(workspace: Workspace, labelled: list[tuple[dict[str, Any], str]]) 
     """One row per episode with the study_statistics columns; `goal` is the episode's env seed."""
     frame = read_episodes(workspace.api, [e for _, e in labelled]).rename(columns={"seed": "goal"})
     keys = pd.DataFrame([{**k, "evaluation_id": e} for k, e in labelled])
-    rows = frame.merge(keys, on="evaluation_id", validate="many_to_one")
+    # many to many: a run's start (budget 0) is one evaluation counted for every seed
+    rows = frame.merge(keys, on="evaluation_id", validate="many_to_many")
     return rows[["arm", "draw", "seed", "task", "goal", "budget", "success"]]
 
 
@@ -185,7 +204,7 @@ def _preconditions(
         (
             c
             for c in comparisons
-            if (c.arm, c.baseline) == ("sft_from_ao", "sft_from_ft") and c.budget == design.primary_budget
+            if (c.arm, c.baseline) == ("sft_from_ao", "sft_from_ft") and c.budget == ENDPOINT
         ),
         None,
     )
@@ -213,7 +232,55 @@ def _preconditions(
             comparison=merged,
         )
     )
+    result.append(_reproducibility(workspace, inputs))
     return result
+
+
+def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Precondition:
+    """(e): do γ draws agree (pairwise cosine), and does γ stand out of seed noise (‖γ‖ against
+    ‖θ_ft^d − θ_ft^d′‖ over γ's tensors)?"""
+    vectors = {int(d): workspace.path(v) for (d,), v in _parse(inputs, "vector")}
+    standard = {int(d): workspace.path(v) for (d,), v in _parse(inputs, "ft")}
+    claim = (
+        "γ is reproducible: draws point the same way (mean pairwise cos(γ^d, γ^d′) > 0.5) and ‖γ‖ exceeds "
+        "the seed-noise vector ‖θ_ft^d − θ_ft^d′‖"
+    )
+    if len(vectors) < 2:
+        return Precondition(key="e", claim=claim, holds=None, detail="needs at least 2 γ draws")
+    gammas = {d: _flat(Checkpoint(p)) for d, p in sorted(vectors.items())}
+    names = sorted(next(iter(gammas.values())))
+    fts = {d: _flat(Checkpoint(p), names) for d, p in sorted(standard.items())}
+    cosines, noise = [], []
+    for a, b in itertools.combinations(sorted(gammas), 2):
+        ga, gb = (np.concatenate([gammas[x][n] for n in names]) for x in (a, b))
+        cosines.append(float(ga @ gb / (np.linalg.norm(ga) * np.linalg.norm(gb))))
+        if a in fts and b in fts:
+            noise.append(float(np.linalg.norm(np.concatenate([fts[a][n] - fts[b][n] for n in names]))))
+    norms = [float(np.linalg.norm(np.concatenate([g[n] for n in names]))) for g in gammas.values()]
+    values = {
+        "mean_cosine": float(np.mean(cosines)),
+        "gamma_norm": float(np.mean(norms)),
+        "seed_noise_norm": float(np.mean(noise)) if noise else math.nan,
+    }
+    holds = values["mean_cosine"] > 0.5 and values["gamma_norm"] > values["seed_noise_norm"]
+    detail = (
+        f"cos(γ^d, γ^d′) {', '.join(f'{c:.2f}' for c in cosines)} (mean {values['mean_cosine']:.2f}); "
+        f"‖γ‖ {', '.join(f'{n:.2f}' for n in norms)} against ‖θ_ft^d − θ_ft^d′‖ "
+        f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}"
+    )
+    return Precondition(key="e", claim=claim, holds=bool(holds), detail=detail, detail_values=values)
+
+
+def _flat(checkpoint: Checkpoint, names: list[str] | None = None) -> dict[str, np.ndarray]:
+    """Float tensors of a (small) checkpoint as flat float64 arrays, by name."""
+    tensors = {n: checkpoint.get(n) for n in (names if names is not None else checkpoint.keys())}
+    return {n: t.double().ravel().numpy() for n, t in tensors.items() if t.is_floating_point()}
+
+
+def gate_passed(workspace: Workspace, report_id: str) -> bool:
+    """Whether a gate-stage analysis found preconditions (b) and (c) shown (intervals above 0)."""
+    report = StudyReport.model_validate(workspace.api.store.open_json(report_id))
+    return report.gate is None
 
 
 def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -> StudyReport:
@@ -224,6 +291,7 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
     if not tests:
         raise ValueError("a study analysis needs test evaluations (inputs test/<arm>/<draw>/<seed>/<budget>)")
     episodes = _episodes(workspace, tests)
+    episodes = pd.concat([episodes, endpoint_rows(episodes, design.endpoint_budgets)], ignore_index=True)
     ext = []
     for (which, d), e in _parse(inputs, "extval"):
         seed = 0  # one run each: paired by draw
@@ -231,10 +299,10 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
             ({"arm": which, "draw": SHARED_DRAW if which == "pt" else int(d), "seed": seed, "budget": 0}, e)
         )
     episodes_ext = _episodes(workspace, ext) if ext else pd.DataFrame(columns=episodes.columns)
-    budgets = sorted(episodes["budget"].unique())
+    budgets = sorted(b for b in episodes["budget"].unique() if b != ENDPOINT)
     comparisons = [
         c
-        for budget in (design.primary_budget, design.final_budget)
+        for budget in (ENDPOINT, design.final_budget)
         for arm, baseline in COMPARED
         if (c := _compare(episodes, arm, baseline, budget, design.n_boot)) is not None
     ]
@@ -250,21 +318,49 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
     for scores in read_scores(workspace.api, evaluations=sorted(final)):
         arm = next(k["arm"] for k, e in tests if e == scores.evaluation_id)
         by_arm.setdefault(arm, []).append(scores.checkpoint_id)
+    preconditions = _preconditions(workspace, inputs, design, episodes_ext, comparisons, convergence)
     return StudyReport(
         design=design,
+        gate=_gate_verdict(design, preconditions),
         goals_per_task=int(goals.min()),
         tasks=sorted(goals.index),
-        preconditions=_preconditions(workspace, inputs, design, episodes_ext, comparisons, convergence),
+        preconditions=preconditions,
         comparisons=comparisons,
         curves=curves,
         selections={name[0]: sel for name, sel in _parse(inputs, "selection")},
         convergence=convergence,
+        per_task={
+            arm: {task: 100 * float(v) for task, v in rows.groupby("task")["success"].mean().items()}
+            for arm, rows in episodes[episodes["budget"] == ENDPOINT].groupby("arm")
+        },
         final_checkpoints={arm: sorted(ids) for arm, ids in sorted(by_arm.items())},
         designs_for_5_points={
-            f"{c.arm}-{c.baseline}": smallest_design(_separable(c.components), n_tasks=c.n_tasks)
+            f"{c.arm}-{c.baseline}": smallest_design(
+                _separable(c.components),
+                n_tasks=c.n_tasks,
+                at_least=(max(c.n_draws, 1), c.n_seeds, c.n_goals // max(c.n_tasks, 1)),
+            )
             for c in comparisons
-            if c.budget == design.primary_budget and c.arm == "capvector"
+            if c.budget == ENDPOINT and c.arm in ("capvector", "aux")
         },
+    )
+
+
+def _gate_verdict(design: StudyDesign, preconditions: list[Precondition]) -> str | None:
+    """At the gate stage: why CapVector's arms will not run, or None when (b) and (c) are shown."""
+    if design.stage != "gate":
+        return None
+    failed = [p for p in preconditions if p.key in ("b", "c") and p.holds is not True]
+    if not failed:
+        return None
+    reasons = "; ".join(
+        f"({p.key}) {p.claim}: {'contradicted' if p.holds is False else 'not shown'} — {p.detail}"
+        for p in failed
+    )
+    return (
+        "The question is untestable on this testbed: CapVector can only carry an auxiliary objective's "
+        "benefit "
+        f"that exists and transfers from θ_ao, and the gate did not show that. {reasons}"
     )
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import statistics
 
 from tasks.study_analysis import StudyReport
-from tasks.study_statistics import Comparison, CurvePoint
+from tasks.study_statistics import ENDPOINT, Comparison, CurvePoint
 from tasks.workspace import Workspace
 
 HEADLINE = (
@@ -48,12 +48,14 @@ def seconds_per_step(workspace: Workspace, report: StudyReport) -> dict[str, flo
 def _cell(c: Comparison | None) -> str:
     if c is None:
         return "—"
-    return f"{c.difference:+.1f} [{c.ci_low:+.1f}, {c.ci_high:+.1f}]"
+    if not c.testable:
+        return f"{c.difference:+.1f} (untestable: no variance)"
+    flag = "" if c.reliable else f" (df {c.df:.1f} < 2)"
+    return f"{c.difference:+.1f} [{c.ci_low:+.1f}, {c.ci_high:+.1f}]{flag}"
 
 
 def _mean_cell(p: CurvePoint) -> str:
-    """A success rate lies in [0, 100]: a t interval with few degrees of freedom can reach beyond."""
-    return f"{p.mean:.1f} [{max(0.0, p.ci_low):.1f}, {min(100.0, p.ci_high):.1f}]"
+    return f"{p.mean:.1f} [{p.ci_low:.1f}, {p.ci_high:.1f}]"
 
 
 def _find(report: StudyReport, arm: str, baseline: str, budget: int) -> Comparison | None:
@@ -62,10 +64,24 @@ def _find(report: StudyReport, arm: str, baseline: str, budget: int) -> Comparis
     )
 
 
+def _positive_control(report: StudyReport) -> list[str]:
+    """Does the auxiliary objective help here at all (the testbed's positive control)?"""
+    c = _find(report, "aux", "sft", ENDPOINT)
+    if c is None:
+        return []
+    shown = c.testable and c.reliable and c.ci_low > 0
+    big = shown and c.difference >= 10
+    verdict = "met" if big else "benefit shown, below 10 points" if shown else "not shown"
+    return [
+        "",
+        f"Positive control (auxiliary SFT − SFT at the endpoint, target ≥ 10 points with its interval above "
+        f"0): {_cell(c)} — **{verdict}**.",
+    ]
+
+
 def _target(report: StudyReport, speed: dict[str, float]) -> list[str]:
     """The bar the study was built for, judged on point estimates and CIs at the primary endpoint."""
-    primary = report.design.primary_budget
-    vs_aux, vs_sft = _find(report, "capvector", "aux", primary), _find(report, "capvector", "sft", primary)
+    vs_aux, vs_sft = _find(report, "capvector", "aux", ENDPOINT), _find(report, "capvector", "sft", ENDPOINT)
     if vs_aux is None or vs_sft is None:
         return []
     near_aux = -2 <= vs_aux.ci_low and vs_aux.ci_high <= 2
@@ -83,73 +99,91 @@ def _target(report: StudyReport, speed: dict[str, float]) -> list[str]:
     ]
 
 
-def study_markdown(workspace: Workspace, report: StudyReport) -> str:
+def _sizing(report: StudyReport, key: str, c: Comparison | None) -> list[str]:
+    if c is None or not c.testable:
+        return []
+    powered = "meets" if c.mdd <= 5 else "does not meet"
+    lines = [
+        "",
+        f"Minimum detectable difference of {NAMES[c.arm]} − {NAMES[c.baseline]} at the endpoint: "
+        f"**{c.mdd:.1f} points** (80 % power, two-sided 5 %); this design {powered} the 5-point bar.",
+    ]
+    needed = report.designs_for_5_points.get(key)
+    if c.mdd > 5:
+        lines.append(
+            f"From this study's variance components, an MDD ≤ 5 would take {needed.n_draws} draws × "
+            f"{needed.n_seeds} seeds × {needed.n_goals_per_task} goals per task (MDD {needed.mdd:.1f})."
+            if needed
+            else "No design up to 20 draws × 20 seeds × 300 goals per task reaches an MDD of 5 here."
+        )
+    return lines
+
+
+def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str, str] | None = None) -> str:
+    """The report; `figures` maps a figure's title to its path relative to the Markdown file."""
     d = report.design
-    primary, final = d.primary_budget, d.final_budget
+    final = d.final_budget
+    budgets = ", ".join(str(b) for b in d.endpoint_budgets)
     lines = [f"# Study `{d.name}`", ""]
     lines += [
         f"Design: {len(d.draws)} γ draw(s) × {len(d.seeds)} training seed(s); {report.goals_per_task} test "
         f"goals per task × {len(report.tasks)} tasks ({', '.join(report.tasks)}), the same goals for every "
-        f"checkpoint. Primary endpoint (declared in the preset): success after **{primary}** downstream "
-        f"steps; secondary: after {final}. Differences in points, paired by draw, seed and goal, with "
-        f"hierarchical-bootstrap 95 % CIs (tasks.study_statistics).",
-        "",
-        "## Headline",
-        "",
-        f"| comparison | @ {primary} (primary) | @ {final} (final) | MDD @ {primary} |",
-        "|---|---|---|---|",
+        f"checkpoint. Primary endpoint (declared in the preset): **mean success over {budgets} downstream "
+        f"steps** (the area under the success-vs-steps curve); secondary: after {final}. Differences in "
+        f"points, paired by draw, seed and goal, with hierarchical-bootstrap 95 % CIs.",
     ]
-    for arm, baseline in HEADLINE:
-        p, f = _find(report, arm, baseline, primary), _find(report, arm, baseline, final)
-        mdd = f"{p.mdd:.1f}" if p else "—"
-        lines.append(f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(p)} | {_cell(f)} | {mdd} |")
-    main = _find(report, "capvector", "sft", primary)
-    if main is not None:
-        powered = "meets" if main.mdd <= 5 else "does not meet"
+    if report.gate is not None:
+        lines += ["", "## Gate: the question is untestable here", "", report.gate]
+        lines += ["", "CapVector's arms (θ_meta, the orthogonal loss, the null vector) were not run."]
+    lines += _positive_control(report)
+    if report.gate is None and _find(report, "capvector", "sft", ENDPOINT) is not None:
         lines += [
             "",
-            f"Minimum detectable difference of CapVector − SFT at the primary endpoint: **{main.mdd:.1f} "
-            f"points** (80 % power, two-sided 5 %); this design {powered} the 5-point bar.",
+            "## Headline",
+            "",
+            "| comparison | endpoint (primary) | @ " + f"{final} (final) | MDD |",
         ]
-        needed = report.designs_for_5_points.get("capvector-sft")
-        if main.mdd > 5:
-            lines.append(
-                f"From this study's variance components, an MDD ≤ 5 would take {needed.n_draws} draws × "
-                f"{needed.n_seeds} seeds × {needed.n_goals_per_task} goals per task (MDD {needed.mdd:.1f})."
-                if needed
-                else "No design up to 20 draws × 20 seeds × 300 goals per task reaches an MDD of 5 here."
-            )
+        lines.append("|---|---|---|---|")
+        for arm, baseline in HEADLINE:
+            p, f = _find(report, arm, baseline, ENDPOINT), _find(report, arm, baseline, final)
+            mdd = f"{p.mdd:.1f}" if p and p.testable else "—"
+            lines.append(f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(p)} | {_cell(f)} | {mdd} |")
+        lines += _sizing(report, "capvector-sft", _find(report, "capvector", "sft", ENDPOINT))
+    else:
+        lines += _sizing(report, "aux-sft", _find(report, "aux", "sft", ENDPOINT))
     lines += _target(report, speed := seconds_per_step(workspace, report))
     lines += ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
     for p in report.preconditions:
         lines.append(f"| ({p.key}) | {p.claim} | {VERDICT[p.holds]} | {p.detail} |")
-    lines += ["", "## Other comparisons", "", f"| comparison | @ {primary} | @ {final} |", "|---|---|---|"]
+    lines += ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
     for arm, baseline in (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("meta_sft", "sft")):
         lines.append(
-            f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, primary))} | "
+            f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, ENDPOINT))} | "
             f"{_cell(_find(report, arm, baseline, final))} |"
         )
-    budgets = sorted({p.budget for points in report.curves.values() for p in points})
-    lines += ["", "## Success vs downstream steps (mean % [95 % CI])", ""]
-    lines.append("| arm | " + " | ".join(str(b) for b in budgets) + " | s/step | × SFT |")
-    lines.append("|---|" + "---|" * (len(budgets) + 2))
-    for arm, points in report.curves.items():
-        by = {p.budget: p for p in points}
-        cells = [_mean_cell(by[b]) if b in by else "—" for b in budgets]
-        sec = speed.get(arm)
-        ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
-        lines.append(
-            f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + f" | {sec:.4f} | {ratio} |"
-            if sec
-            else f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + " | — | — |"
-        )
-    chosen = d.chosen
+    curve_budgets = sorted({p.budget for points in report.curves.values() for p in points})
     lines += [
         "",
-        "## Choices (validation goals, tuning seed; each a `selection` artifact)",
+        "## Success vs downstream steps (mean % [95 % CI]; 0: the checkpoint a run starts from)",
         "",
-        f"extraction lr {chosen['extraction_lr']:g}; auxiliary weight {chosen['aux_weight']:g}; "
-        f"α {chosen['alpha']:g}; λ {chosen['lambda_scale']:g} × ‖∇ action loss‖/‖γ‖.",
+    ]
+    lines.append("| arm | " + " | ".join(str(b) for b in curve_budgets) + " | s/step | × SFT |")
+    lines.append("|---|" + "---|" * (len(curve_budgets) + 2))
+    for arm, points in report.curves.items():
+        by = {p.budget: p for p in points}
+        cells = [_mean_cell(by[b]) if b in by else "—" for b in curve_budgets]
+        sec = speed.get(arm)
+        ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
+        timing = f" | {sec:.4f} | {ratio} |" if sec else " | — | — |"
+        lines.append(f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + timing)
+    for title, path in (figures or {}).items():
+        lines += ["", f"![{title}]({path})"]
+    lines += [
+        "",
+        "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)",
+        "",
+        "; ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in d.chosen.items())
+        + (" (λ as a multiple of ‖∇ action loss‖/‖γ‖)." if "lambda_scale" in d.chosen else "."),
         "",
     ]
     for name, sel in report.selections.items():

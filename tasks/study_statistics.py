@@ -37,6 +37,31 @@ from pydantic import BaseModel, ConfigDict
 COLUMNS = ("arm", "draw", "seed", "task", "goal", "budget", "success")
 SHARED_DRAW = -1
 """The `draw` of an arm that does not depend on γ: one run per seed, shared by every draw."""
+ENDPOINT = -1
+"""The `budget` of the primary endpoint's rows: each goal's success averaged over the declared budgets
+(the area under the success-vs-steps curve, normalized), so it is paired and analysed like a budget."""
+
+
+def budget_name(budget: int) -> str:
+    return "the endpoint (mean over budgets)" if budget == ENDPOINT else f"{budget} steps"
+
+
+def endpoint_rows(episodes: pd.DataFrame, budgets: Iterable[int]) -> pd.DataFrame:
+    """One `ENDPOINT` row per (arm, draw, seed, task, goal): its mean success over `budgets`, each of
+    which every run must have been tested at (a missing budget would bias the mean)."""
+    budgets = sorted(set(budgets))
+    rows = episodes[episodes["budget"].isin(budgets)]
+    keys = ["arm", "draw", "seed", "task", "goal"]
+    counts = rows.groupby(keys)["budget"].nunique()
+    short = counts[counts != len(budgets)]
+    if len(short):
+        arm, draw, seed, *_ = short.index[0]
+        raise ValueError(
+            f"arm {arm} (draw {draw}, seed {seed}) lacks test episodes at some of the endpoint's budgets "
+            f"{budgets}"
+        )
+    mean = rows.groupby(keys, as_index=False)["success"].mean()
+    return mean.assign(budget=ENDPOINT)[list(COLUMNS)]
 
 Method = Literal["residual", "cases"]
 _POINTS2 = 100.0**2
@@ -119,10 +144,24 @@ class Comparison(BaseModel):
     unestimated: tuple[str, ...] = ()
     """Components not separable here (one draw or one seed); their variance sits in a neighbour's."""
 
+    @property
+    def testable(self) -> bool:
+        """False when the two arms never differ on any goal: no variance, nothing to test."""
+        return self.se > 0
+
+    @property
+    def reliable(self) -> bool:
+        """An interval from fewer than 2 degrees of freedom is no interval: it is flagged, not read."""
+        return self.df >= 2
+
     def summary(self) -> str:
+        where = f"{self.arm} − {self.baseline} @ {budget_name(self.budget)}"
+        if not self.testable:
+            return f"{where}: {self.difference:+.1f} points, untestable (the arms never differ: no variance)"
+        flag = "" if self.reliable else f"; df {self.df:.1f} < 2: the interval means little"
         return (
-            f"{self.arm} − {self.baseline} @ {self.budget}: {self.difference:+.1f} points "
-            f"[{self.ci_low:+.1f}, {self.ci_high:+.1f}] ({100 * self.level:.0f} % CI), MDD {self.mdd:.1f}"
+            f"{where}: {self.difference:+.1f} points [{self.ci_low:+.1f}, {self.ci_high:+.1f}] "
+            f"({100 * self.level:.0f} % CI), MDD {self.mdd:.1f}{flag}"
         )
 
 
@@ -304,21 +343,26 @@ def smallest_design(
     components: VarianceComponents,
     n_tasks: int,
     target_mdd: float = 5.0,
-    draws: Iterable[int] = range(1, 21),
-    seeds: Iterable[int] = range(1, 21),
+    draws: Iterable[int] = range(2, 21),
+    seeds: Iterable[int] = range(2, 21),
     goals_per_task: Iterable[int] = (10, 20, 30, 50, 75, 100, 150, 200, 300),
     cost: Callable[[int, int, int], Any] = _runs_then_episodes,
     level: float = 0.95,
     power: float = 0.8,
     small_sample: bool = True,
+    at_least: tuple[int, int, int] = (2, 2, 1),
 ) -> Design | None:
     """Cheapest design in the grid with MDD ≤ target_mdd, or None.
 
+    Never fewer than 2 draws and 2 seeds (a design that cannot estimate the variances it was sized
+    from) nor smaller than `at_least` (draws, seeds, goals per task: the design that was run).
     cost(n_draws, n_seeds, n_goals_per_task) orders designs; the default is (training runs, episodes)
     of a per-draw arm, a draw counting its two extraction runs: runs cost far more than episodes.
     """
     best: tuple[Any, Design] | None = None
     for g, s, k in itertools.product(draws, seeds, goals_per_task):
+        if g < max(2, at_least[0]) or s < max(2, at_least[1]) or k < at_least[2]:
+            continue
         if best is not None and not cost(g, s, k) < best[0]:
             continue
         mdd = design_mdd(components, g, s, k, n_tasks, level, power, small_sample)
@@ -356,8 +400,9 @@ class _Arm:
             self.success = columns["success"][rows].astype(float)
         except (TypeError, ValueError) as err:
             raise ValueError(f"arm {name!r}: column 'success' must be bool or 0/1 ({err})") from None
-        if not ((self.success == 0) | (self.success == 1)).all():
-            raise ValueError(f"arm {name!r}, budget {budget}: column 'success' must be bool or 0/1 (NaN?)")
+        # 0/1 per episode; an ENDPOINT row is a goal's mean over budgets, so fractions are allowed
+        if not ((self.success >= 0) & (self.success <= 1)).all():
+            raise ValueError(f"arm {name!r}, budget {budget}: column 'success' must lie in [0, 1] (NaN?)")
         self.name = name
         self.draw, self.seed = columns["draw"][rows].astype(int), columns["seed"][rows].astype(int)
         self.draws, self.seeds = np.unique(self.draw), np.unique(self.seed)
@@ -616,8 +661,8 @@ def paired_difference(
         baseline=baseline,
         budget=budget,
         difference=e.value,
-        ci_low=e.ci_low,
-        ci_high=e.ci_high,
+        ci_low=max(e.ci_low, -100.0),  # a difference of rates lies within ±100 points
+        ci_high=min(e.ci_high, 100.0),
         se=e.se,
         df=e.df,
         mdd=minimum_detectable_difference(e.se, e.df, level),
@@ -671,8 +716,8 @@ def success_curve(
             CurvePoint(
                 budget=budget,
                 mean=e.value,
-                ci_low=e.ci_low,
-                ci_high=e.ci_high,
+                ci_low=max(e.ci_low, 0.0),  # a rate lies within [0, 100]
+                ci_high=min(e.ci_high, 100.0),
                 n_draws=an.n_draws,
                 n_seeds=len(arms[0].seeds),
                 n_goals=len(goals),

@@ -23,7 +23,7 @@ def _config(lrs):
     return {
         "name": "extraction lr",
         "context": {"arm": "sft"},
-        "candidates": [{"values": {"lr": lr}, "evaluation": f"lr {lr}"} for lr in lrs],
+        "candidates": [{"values": {"lr": lr}, "evaluations": [f"lr {lr}"]} for lr in lrs],
     }
 
 
@@ -45,6 +45,29 @@ def test_the_best_candidate_on_validation_is_chosen_and_its_evaluations_are_pare
     assert run_select(ws, "select lr", evals, _config([0.0001, 0.001, 0.01])) == selection  # cached
 
 
+def test_a_candidate_with_several_budgets_is_judged_on_their_mean(tmp_path):
+    """The study's endpoint is the mean over its budgets: a candidate that is best only at the last
+    budget loses to one that is better on average."""
+    ws = Workspace(str(tmp_path / "home"))
+    evals = {
+        "a @ 1": _evaluation(ws, "a1", [False, False, False, False]),
+        "a @ 2": _evaluation(ws, "a2", [True, True, True, True]),
+        "b @ 1": _evaluation(ws, "b1", [True, True, True, False]),
+        "b @ 2": _evaluation(ws, "b2", [True, True, True, False]),
+    }
+    config = {
+        "name": "aux weight",
+        "candidates": [
+            {"values": {"w": w}, "evaluations": [f"{w} @ 1", f"{w} @ 2"]} for w in ("a", "b")
+        ],
+    }
+    selection = run_select(ws, "select w", evals, config)
+    assert chosen(ws, selection) == {"w": "b"}
+    doc = ws.api.store.open_json(selection)
+    assert [row["validation_success"] for row in doc["grid"]] == [0.5, 0.75]
+    assert {p.id for p in ws.api.get(selection).parents} == set(evals.values())
+
+
 def test_bad_selections_are_refused_naming_the_problem(tmp_path):
     ws = Workspace(str(tmp_path / "home"))
     one = _evaluation(ws, "a", [True])
@@ -53,7 +76,7 @@ def test_bad_selections_are_refused_naming_the_problem(tmp_path):
     other_protocol = _evaluation(ws, "b", [True], fp="e" * 64)
     with pytest.raises(ValueError, match="2 protocols"):
         run_select(ws, "s", {"lr 0.001": one, "lr 0.01": other_protocol}, _config([0.001, 0.01]))
-    duplicate = {"name": "x", "candidates": [{"values": {"lr": 1}, "evaluation": "e"}] * 2}
+    duplicate = {"name": "x", "candidates": [{"values": {"lr": 1}, "evaluations": ["e"]}] * 2}
     with pytest.raises(ValueError, match="share an evaluation label"):
         run_select(ws, "s", {"e": one}, duplicate)
 
@@ -66,7 +89,7 @@ def test_a_step_using_a_chosen_value_names_the_selection_as_its_parent(tmp_path)
 
     ws = Workspace(str(tmp_path / "home"))
     evals = {f"α {a}": _evaluation(ws, f"m{a}", [a > 1]) for a in (0.5, 1.1)}
-    candidates = [{"values": {"alpha": a}, "evaluation": f"α {a}"} for a in (0.5, 1.1)]
+    candidates = [{"values": {"alpha": a}, "evaluations": [f"α {a}"]} for a in (0.5, 1.1)]
     config = {"name": "α", "candidates": candidates}
     selection = run_select(ws, "select α", evals, config)
     files = {}

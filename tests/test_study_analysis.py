@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from tasks.held_out_loss import MEASUREMENT_KIND
-from tasks.study_analysis import StudyDesign, analyse, label
+from tasks.study_analysis import StudyDesign, analyse, gate_passed, label, run_analyse_study
+from tasks.study_statistics import ENDPOINT
 from tasks.workspace import Workspace
 
 TASKS = ("reach-v3", "push-v3")
@@ -55,7 +56,7 @@ def _study(ws: Workspace, draws: list[int], seeds: list[int]) -> tuple[dict[str,
         arms=list(TRUE_P),
         draws=draws,
         seeds=seeds,
-        primary_budget=10,
+        endpoint_budgets=[10, 20],
         final_budget=20,
         extraction_steps=100,
         flat_tolerance=0.05,
@@ -76,10 +77,10 @@ def test_known_effects_are_found_and_preconditions_follow_the_evidence(tmp_path)
     ws = Workspace(tmp_path / "home")
     inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1, 2])
     report = analyse(ws, inputs, design)
-    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", 10))
+    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT))
     assert main.ci_low > 0 and main.difference == pytest.approx(40, abs=10)
     upper = next(
-        c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("sft_from_ao", "sft_from_ft", 10)
+        c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("sft_from_ao", "sft_from_ft", ENDPOINT)
     )
     assert upper.ci_low < upper.difference < upper.ci_high
     verdicts = {p.key: p.holds for p in report.preconditions}
@@ -96,5 +97,66 @@ def test_a_one_draw_study_is_analysed(tmp_path):
     ws = Workspace(tmp_path / "home")
     inputs, design = _study(ws, draws=[0], seeds=[0, 1])
     report = analyse(ws, inputs, design.model_copy(update={"draws": [0], "seeds": [0, 1]}))
-    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", 10))
+    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT))
     assert main.n_draws == 1 and main.unestimated  # what one draw cannot separate is named
+
+
+def test_the_gate_stops_a_study_whose_benefit_does_not_transfer(tmp_path):
+    """(b) holds but (c) is not shown: the gate-stage report says why the question is untestable, and
+    the flow's check (`gate_passed`) reads it from the stored artifact."""
+    ws = Workspace(tmp_path / "home")
+    inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1, 2])
+    gate = design.model_copy(update={"stage": "gate"})
+    report_id = run_analyse_study(ws, "analyse (gate)", inputs, gate.model_dump(mode="json"))
+    assert not gate_passed(ws, report_id)
+    report = analyse(ws, inputs, gate)
+    assert "untestable" in report.gate and "(c)" in report.gate and "(b)" not in report.gate
+    assert analyse(ws, inputs, design).gate is None  # the final stage never gates
+
+
+def test_the_endpoint_is_each_goals_mean_over_the_budgets(tmp_path):
+    """An arm that fails at the early budget and succeeds at the final one scores 50 at the endpoint;
+    the curve keeps both budgets."""
+    ws = Workspace(tmp_path / "home")
+    rng = np.random.default_rng(0)
+    inputs = {}
+    for s in (0, 1):
+        for b, p in ((10, 0.0), (20, 1.0)):
+            inputs[label("test", "capvector", 0, s, b)] = _evaluation(ws, f"c {s} {b}", p, rng)
+            inputs[label("test", "sft", -1, s, b)] = _evaluation(ws, f"s {s} {b}", 0.0, rng)
+    _, design = _study(Workspace(tmp_path / "other"), draws=[0], seeds=[0, 1])
+    design = design.model_copy(update={"arms": ["sft", "capvector"], "draws": [0]})
+    report = analyse(ws, inputs, design)
+    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT))
+    assert main.arm_mean == pytest.approx(50.0) and main.baseline_mean == 0.0
+    assert [p.budget for p in report.curves["capvector"]] == [10, 20]
+    with pytest.raises(ValueError, match="lacks test episodes at some of the endpoint's budgets"):
+        analyse(ws, inputs, design.model_copy(update={"endpoint_budgets": [10, 20, 30]}))
+
+
+def _tensors_file(ws: Workspace, tmp_path, name: str, tensors: dict, kind: str) -> str:
+    from safetensors.torch import save_file
+
+    path = tmp_path / f"{name}.safetensors"
+    save_file(tensors, str(path))
+    return ws.api.register_file(path, kind, name).id
+
+
+def test_precondition_e_measures_how_alike_the_draws_are_against_seed_noise(tmp_path):
+    import torch
+
+    ws = Workspace(tmp_path / "home")
+    inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1])
+    base = torch.randn(50, generator=torch.Generator().manual_seed(0))
+    gamma = {0: {"w": base * 3}, 1: {"w": base * 3 + 0.1 * torch.randn(50)}}
+    ft = {0: {"w": torch.zeros(50)}, 1: {"w": torch.full((50,), 0.1)}}  # seed noise ‖·‖ = 0.71
+    for d in (0, 1):
+        inputs[label("vector", d)] = _tensors_file(ws, tmp_path, f"gamma{d}", gamma[d], "vector")
+        inputs[label("ft", d)] = _tensors_file(ws, tmp_path, f"ft{d}", ft[d], "checkpoint")
+    e = next(p for p in analyse(ws, inputs, design).preconditions if p.key == "e")
+    assert e.holds is True and e.detail_values["mean_cosine"] > 0.99
+    assert e.detail_values["seed_noise_norm"] == pytest.approx(0.1 * 50**0.5, rel=1e-5)
+    opposite = {"w": -gamma[0]["w"]}
+    inputs[label("vector", 1)] = _tensors_file(ws, tmp_path, "gamma1-opposite", opposite, "vector")
+    e = next(p for p in analyse(ws, inputs, design).preconditions if p.key == "e")
+    assert e.holds is False and e.detail_values["mean_cosine"] == pytest.approx(-1.0)

@@ -16,6 +16,7 @@ from safetensors.numpy import load_file
 from capvector_core.demos import EVAL_SEED_BASE, UNIT_SEEDS, VALIDATION_SEED_BASE
 from flows.study_config import load_study
 from tasks.study_analysis import StudyReport
+from tasks.study_statistics import ENDPOINT
 from tasks.workspace import Workspace
 from tests.conftest import run_cli
 
@@ -39,6 +40,7 @@ def test_selections_come_from_validation_goals_and_are_parents_of_what_uses_them
     ws = Workspace(home)
     assert set(ids["selections"]) == {
         "selection/extraction lr",
+        "selection/extraction auxiliary weight",
         "selection/auxiliary weight",
         "selection/α and λ",
     }
@@ -68,10 +70,11 @@ def test_every_run_is_tested_on_the_same_goals_at_every_budget(study_home):
     tests = [p for p, role in _parents(ws, ids["report"]) if role == "test"]
     draws, seeds = len(config.study.draws), len(config.seeds)
     runs = 2 * seeds + 5 * draws * seeds  # sft, aux shared; five arms per draw
-    assert len(tests) == runs * len(config.curve_budgets)
+    starts = 1 + 4 * draws  # budget 0: θ_pt; each draw's θ_meta, θ_null, θ_ao, θ_ft
+    assert len(tests) == runs * len(config.curve_budgets) + starts
     assert len({ws.api.get(t).config["protocol"]["seeds"].__repr__() for t in tests}) == 1
     for arm, points in report.curves.items():
-        assert [p.budget for p in points] == config.curve_budgets, arm
+        assert [p.budget for p in points] == [0, *config.curve_budgets], arm
     kept = ws.api.get(report.final_checkpoints["capvector"][0]).config
     assert set(kept["snapshots"]) == {str(b) for b in config.curve_budgets[:-1]}
     summary = kept["summary"]
@@ -100,14 +103,15 @@ def test_the_report_states_preconditions_comparisons_and_the_design(study_home):
     home, ids = study_home
     ws = Workspace(home)
     report = StudyReport.model_validate(ws.api.store.open_json(ids["report"]))
-    assert [p.key for p in report.preconditions] == ["a", "b", "c", "d"]
+    assert [p.key for p in report.preconditions] == ["a", "b", "c", "d", "e"]
+    assert report.gate is None and not report.design.gate  # study-smoke runs every arm
     assert len(report.convergence) == 2 * len(report.design.draws)  # θ_ft and θ_ao per draw
     pairs = {(c.arm, c.baseline, c.budget) for c in report.comparisons}
     for baseline in ("sft", "aux", "meta_sft", "null_capvector"):
-        for budget in (report.design.primary_budget, report.design.final_budget):
+        for budget in (ENDPOINT, report.design.final_budget):
             assert ("capvector", baseline, budget) in pairs
     for c in report.comparisons:
-        assert c.ci_low <= c.difference <= c.ci_high
+        assert -100 <= c.ci_low <= c.difference <= c.ci_high <= 100
         assert c.n_goals == report.goals_per_task * len(report.tasks)
 
 
@@ -127,11 +131,31 @@ def test_a_second_run_is_answered_by_the_cache(study_home):
     assert {int(m.group(2)) for m in counts} == {len(lines)}  # the announced total is what ran
 
 
+def test_a_gate_that_fails_stops_the_study_and_says_why(study_home):
+    """On the same home with the gate on: everything before the gate is cached; tiny runs show no
+    benefit from the auxiliary objective, so the report says the question is untestable and CapVector's
+    arms are never trained."""
+    home, ids = study_home
+    gated = json.loads(
+        run_cli("study", "--preset", "study-smoke", "--set", "study.gate=true", "--json", home=home).stdout
+    )
+    ws = Workspace(home)
+    report = StudyReport.model_validate(ws.api.store.open_json(gated["report"]))
+    assert report.design.stage == "gate" and "untestable" in report.gate
+    assert set(report.final_checkpoints) <= {"sft", "aux", "sft_from_ao", "sft_from_ft"}
+    assert "α and λ" not in " ".join(gated["selections"])
+    assert "Gate: the question is untestable here" in gated["markdown"]
+
+
 def test_study_presets_are_checked_before_anything_runs(tmp_path):
     with pytest.raises(ValueError, match="aux_weights"):
         load_study("study-smoke", ["study.aux_weights=[0.5]"])
     with pytest.raises(ValueError, match="budgets"):
-        load_study("study-smoke", ["study.primary_budget=16"])
+        load_study("study-smoke", ["study.budgets=[16]"])
+    with pytest.raises(ValueError, match="draws"):
+        load_study("study-smoke", ["study.draws=[-1, 0]"])  # -1 marks the shared arms
+    with pytest.raises(ValueError, match="study.gate needs arms"):
+        load_study("study-smoke", ["study.gate=true", "study.arms=[sft, capvector]"])
     with pytest.raises(ValueError, match="tuning_seed"):
         load_study("study-smoke", ["study.tuning_seed=0"])
     with pytest.raises(ValueError, match="not a study"):

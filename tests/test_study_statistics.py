@@ -13,7 +13,9 @@ import pandas as pd
 import pytest
 
 from tasks.study_statistics import (
+    ENDPOINT,
     SHARED_DRAW,
+    endpoint_rows,
     VarianceComponents,
     design_mdd,
     estimate_variance_components,
@@ -354,7 +356,7 @@ def test_incomplete_or_duplicated_runs_are_refused(episodes):
 
 def test_bad_success_values_and_mixed_draws_are_refused(episodes):
     bad = episodes.astype({"success": float})
-    bad.loc[bad.index[0], "success"] = 0.5
+    bad.loc[bad.index[0], "success"] = 1.5  # a fraction is an endpoint mean; above 1 is nothing
     with pytest.raises(ValueError, match="'success'"):
         paired_difference(bad, "capvector", "sft", BUDGET)
     mixed = episodes.copy()
@@ -371,3 +373,46 @@ def test_one_draw_leaves_components_unestimated_and_design_asks_for_them(episode
     assert set(c.unestimated) == {"draw", "run", "draw_goal", "episode"}
     with pytest.raises(ValueError, match="draw, run, draw_goal, episode"):
         design_mdd(c.components, 4, 3, 50, 4)
+
+
+def test_intervals_stay_within_what_rates_and_differences_can_be():
+    """Two draws × two seeds with huge run-to-run noise: t quantiles at ~1 df stretch far; the reported
+    interval is clipped to ±100 points (a difference) and [0, 100] (a rate), and flagged when df < 2."""
+    rng = np.random.default_rng(3)
+    frames = []
+    for arm, draws in (("capvector", [0, 1]), ("sft", [SHARED_DRAW])):
+        runs = rng.random((len(draws), 2, 1)) < 0.5  # each run all-or-nothing
+        frames.append(_frame(arm, np.broadcast_to(runs, (len(draws), 2, 10)).astype(float), draws, 1, 10))
+    episodes = pd.concat(frames, ignore_index=True)
+    c = paired_difference(episodes, "capvector", "sft", BUDGET, n_boot=200)
+    assert -100 <= c.ci_low <= c.difference <= c.ci_high <= 100
+    curve = success_curve(episodes, "capvector", n_boot=200)
+    assert all(0 <= p.ci_low <= p.mean <= p.ci_high <= 100 for p in curve)
+    if c.df < 2:
+        assert not c.reliable and "means little" in c.summary()
+
+
+def test_a_comparison_without_variance_is_untestable():
+    same = np.ones((2, 2, 10))
+    episodes = pd.concat(
+        [_frame("capvector", same, [0, 1], 1, 10), _frame("sft", same[:1], [SHARED_DRAW], 1, 10)],
+        ignore_index=True,
+    )
+    c = paired_difference(episodes, "capvector", "sft", BUDGET, n_boot=200)
+    assert not c.testable and "untestable" in c.summary()
+
+
+def test_sizing_never_recommends_less_than_two_by_two_nor_less_than_was_run():
+    tiny = VarianceComponents(draw=0.1, run=0.1, episode=1.0)  # any design meets 5 points
+    assert smallest_design(tiny, 3, draws=range(1, 5), seeds=range(1, 5)).n_draws >= 2
+    design = smallest_design(tiny, 3, at_least=(3, 4, 30))
+    assert (design.n_draws, design.n_seeds) == (3, 4) and design.n_goals_per_task >= 30
+
+
+def test_endpoint_rows_average_each_goal_over_the_budgets():
+    early = _frame("sft", np.zeros((1, 2, 4)), [SHARED_DRAW], 1, 4, budget=10)
+    late = _frame("sft", np.ones((1, 2, 4)), [SHARED_DRAW], 1, 4, budget=20)
+    rows = endpoint_rows(pd.concat([early, late], ignore_index=True), [10, 20])
+    assert (rows["budget"] == ENDPOINT).all() and (rows["success"] == 0.5).all() and len(rows) == 8
+    with pytest.raises(ValueError, match="lacks test episodes"):
+        endpoint_rows(early, [10, 20])
