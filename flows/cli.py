@@ -16,9 +16,6 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
-from rich.markup import escape
-from rich.table import Table
 
 from artifacts.errors import ArtifactError
 from flows.catalogue_commands import catalogue_app
@@ -35,8 +32,30 @@ app.add_typer(artifacts_app, name="artifacts")
 app.add_typer(vector_app, name="vector")
 app.add_typer(catalogue_app, name="catalogue")
 app.command("verify")(verify)
-console = Console()
-err = Console(stderr=True)
+
+
+class _LazyConsole:
+    """A rich Console made on first use: `sql` and `--help` never need rich's import (~30 ms)."""
+
+    def __init__(self, **options: Any):
+        self._options, self._console = options, None
+
+    def __getattr__(self, name: str) -> Any:
+        if self._console is None:
+            from rich.console import Console
+
+            self._console = Console(**self._options)
+        return getattr(self._console, name)
+
+
+def Table(*columns: str) -> Any:  # noqa: N802 (stands for rich.table.Table, imported when a table is made)
+    from rich.table import Table as RichTable
+
+    return RichTable(*columns)
+
+
+console = _LazyConsole()
+err = _LazyConsole(stderr=True)
 
 HomeOption = Annotated[str | None, typer.Option("--home", help="capvector home (default: $CAPVECTOR_HOME)")]
 JsonOption = Annotated[bool, typer.Option("--json", help="print machine-readable JSON")]
@@ -647,6 +666,8 @@ def _fail(exc: BaseException, code: int) -> None:
     text = one_line(exc)
     if code == 1:  # not a user error: say what it is and where to look
         text = f"{type(exc).__name__}: {text}" + ("" if State.debug else " (--debug shows the traceback)")
+    from rich.markup import escape
+
     # ids and paths stay whole; a tensor named like rich markup (`x[/bold]`) prints as it is
     err.print(f"[bold red]error:[/] {escape(text)}", soft_wrap=True)
     sys.exit(code)
