@@ -12,8 +12,11 @@ COPY capvector_core ./capvector_core
 COPY artifacts ./artifacts
 COPY tasks ./tasks
 COPY flows ./flows
-# CPU build of torch first (the same pin as the project), then the project.
-RUN pip install --no-cache-dir torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
+# CPU build of torch first (the same pin as the project), then the project. As in the Makefile:
+# `--build-arg TORCH_INDEX=` takes torch from PyPI alone (the CUDA build on Linux).
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
+RUN pip install --no-cache-dir --no-deps ${TORCH_INDEX:+--extra-index-url "$TORCH_INDEX"} torch==2.13.0 \
+ && pip install --no-cache-dir torch==2.13.0 \
  && pip install --no-cache-dir .
 
 ENV MUJOCO_GL=egl \

@@ -11,13 +11,24 @@ export DO_NOT_TRACK := 1
 export PREFECT_HOME ?= $(CURDIR)/.prefect
 export PREFECT_LOGGING_LEVEL ?= WARNING
 
+# Where torch's CPU build comes from: PyTorch's CPU wheel index, searched beside PyPI for torch alone
+# (PyPI's Linux torch is the multi-GB CUDA build). `make install TORCH_CUDA=1` (or `TORCH_INDEX=`)
+# takes torch from PyPI alone (CUDA on Linux); TORCH_INDEX=<url> names another index.
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+ifeq ($(TORCH_CUDA),1)
+TORCH_INDEX :=
+endif
+
 .PHONY: install run test lint bench clean
 
 $(STAMP): pyproject.toml
 	scripts/install_system_deps.sh
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q -U pip
-	# The CPU build of torch first: an unpinned resolve would pull a multi-GB CUDA build.
+	# torch first, alone (--no-deps) from TORCH_INDEX as an *extra* index: pip picks 2.13.0+cpu there
+	# over PyPI's 2.13.0, and where that index cannot be reached pip falls back to the other indexes
+	# after a few retries for this one package. Its dependencies come next, from the usual indexes.
+	$(PY) -m pip install -q --no-deps $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) torch==2.13.0
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
