@@ -5,6 +5,10 @@ byte must hash to the recorded sha256 (read from the store itself: no memo, no c
 written), a directory must hold no file beyond its record, and its kind, name and parent edges must
 agree with the catalogue's row, written at registration (which catches a sidecar edited and re-sealed
 by someone who did not also edit the catalogue). Exit 1 naming each bad id; 0 on a clean store.
+
+With `--all`, the step cache's index (content key -> artifact id) is checked too: an entry naming an
+artifact recorded under another cache key (swapped or edited entries) is listed as
+`MISMATCH step-cache/<key>` and fails the check; a run treats such an entry as a miss (tasks.caching).
 """
 
 from __future__ import annotations
@@ -48,10 +52,11 @@ def verify(
         verdicts.append(verdict)
         progress.step(verdict)
     progress.close()
+    cache_verdicts = _cache_verdicts(api, resolve_home(home)) if all_ else []
 
     failed = [v for v in verdicts if v.bad or (strict and v.status == "unsealed")]
     if as_json:
-        typer.echo(json.dumps([v.model_dump() for v in verdicts], indent=1))
+        typer.echo(json.dumps([v.model_dump() for v in verdicts + cache_verdicts], indent=1))
     else:
         for v in verdicts:
             if v.status != "ok":
@@ -62,10 +67,28 @@ def verify(
             f"{len(verdicts)} artifacts, {_size(progress.bytes)} hashed in {progress.elapsed():.1f} s: "
             f"{counts['ok']} ok, {counts['unsealed']} unsealed, {bad} bad"
         )
+        for v in cache_verdicts:
+            typer.echo(f"{v.status.upper():<9} {v.id}  {v.detail}")
+        if cache_verdicts:
+            typer.echo(f"{len(cache_verdicts)} step-cache entries name an artifact of another key")
         if indexed is None:
             typer.echo("the catalogue could not be read: lineage was not compared with it", err=True)
-    if failed:
+    if failed or cache_verdicts:
         raise typer.Exit(1)
+
+
+def _cache_verdicts(api: Any, home: str) -> list[IntegrityVerdict]:
+    """One `mismatch` verdict (id `step-cache/<key>`) per index entry that is not its key's result."""
+    from tasks.caching import index_problems
+
+    return [
+        IntegrityVerdict(
+            id=f"step-cache/{key}",
+            status="mismatch",
+            detail=f"{problem}: the next run recomputes this step (remove the entry to silence this)",
+        )
+        for key, problem in index_problems(home, api)
+    ]
 
 
 def _catalogue_lineage(api: Any) -> dict[str, tuple[str, str, set[tuple[str, str]]]] | None:

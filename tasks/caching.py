@@ -9,6 +9,19 @@ is in the store and verifies is not recomputed (also after a killed flow or a de
 and a missing or corrupt one is recomputed. The index falls back to the catalogue (artifacts record
 their cache key), so finished work is never done twice.
 
+The index is not trusted blindly. A hit must be the artifact this key produced: its record's
+`config.cache_key` is the lookup's key (the key hashes kind, inputs, config and code, so this also
+checks the recorded step config), or the entry was written for this key when its computation
+returned an artifact first recorded under another key (the same bytes, e.g. after a code change:
+content addressing keeps the first record) and still says so. Artifacts the step registered beside
+its result and that the result names as parents (roles in COMPANION_ROLES: training snapshots, a
+LoRA adapter) must be intact too. Anything else is a miss: recomputed, never used, with one warning
+line naming the step (`capvector verify --all` lists such entries: `index_problems`).
+
+Two runs on one home: a step is computed and registered under an exclusive lock per content key
+(`<home>/locks/<key>.lock`, flock: the kernel drops it when its holder dies, even by kill -9). A run
+that finds the lock held waits, then looks the cache up again, so it reuses the other's artifact.
+
 Prefect's own task cache is not used: its hits are read back from result records in
 `$PREFECT_HOME/storage`, deserialized with the serializer each record names (pickle by default), so a
 planted record would run its code. Steps record whether the content cache answered them
@@ -17,23 +30,32 @@ planted record would run its code. Steps record whether the content cache answer
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
+from artifacts.errors import ArtifactError
+from artifacts.home import is_local, local_cache_dir
 from tasks.step_code import step_code
 from tasks.workspace import Workspace
+
+# Parent roles that name artifacts the step registered itself, beside its result: a hit needs them too.
+COMPANION_ROLES = ("snapshot", "adapter")
 
 # What `cached_step` did, per call, inside a `step_outcomes()` block: "cached" or "produced".
 _outcomes: ContextVar[list[str] | None] = ContextVar("capvector_step_outcomes", default=None)
 # Inside `probing()`, `cached_step` answers from the cache or raises NotCached; it never produces.
 _probing: ContextVar[bool] = ContextVar("capvector_cache_probe", default=False)
+# The label of the pipeline step being run (tasks.prefect_task), for the lines `cached_step` writes.
+_step_label: ContextVar[str | None] = ContextVar("capvector_step_label", default=None)
 
 
 class NotCached(LookupError):
@@ -49,6 +71,16 @@ def probing() -> Iterator[None]:
         yield
     finally:
         _probing.reset(token)
+
+
+@contextmanager
+def step_label(step: str) -> Iterator[None]:
+    """Name the step whose `cached_step` calls run inside the block (its warnings name it)."""
+    token = _step_label.set(step)
+    try:
+        yield
+    finally:
+        _step_label.reset(token)
 
 
 @contextmanager
@@ -89,40 +121,166 @@ def selected_by(inputs: dict[str, str]) -> list[tuple[str, str]]:
     return [(aid, "selected_by") for key, aid in sorted(inputs.items()) if key.startswith("selection")]
 
 
+def index_dir(home: str) -> Path:
+    """The step-cache index of a home (Workspace.cache_dir), without opening the home's API."""
+    local = Path(home) if is_local(home) else local_cache_dir(home)
+    return local / "step-cache"
+
+
 def _index_path(workspace: Workspace, key: str) -> Path:
     return workspace.cache_dir / f"{key}.json"
 
 
-def lookup(workspace: Workspace, key: str) -> str | None:
-    """The artifact id stored for `key`, if it is still in the store and its content verifies.
+def _read_entry(path: Path) -> dict[str, Any] | None:
+    """An index entry, or None when absent or unreadable (a cut-short file is no answer)."""
+    try:
+        entry = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return entry if isinstance(entry, dict) and isinstance(entry.get("artifact_id"), str) else None
 
-    Without an index entry (a crash between registration and `remember`), the catalogue is asked
-    for an artifact registered with this cache key, so finished work is never done twice.
-    """
-    path = _index_path(workspace, key)
-    if path.exists():
-        artifact_id = json.loads(path.read_text())["artifact_id"]
+
+def recorded_key(record: Any) -> str | None:
+    """The cache key an artifact was registered under (its record's `config.cache_key`)."""
+    key = (record.config or {}).get("cache_key")
+    return key if isinstance(key, str) else None
+
+
+def entry_problem(key: str, entry: dict[str, Any] | None, recorded: str | None) -> str | None:
+    """Why the artifact an entry (None: the catalogue's answer) names cannot be this key's result.
+
+    `recorded`: the key in the artifact's record. It must be `key`, unless the entry was written for
+    `key` over an artifact first recorded under another key (same bytes) and says which."""
+    if recorded == key:
+        return None
+    if entry is not None and entry.get("cache_key") == key and entry.get("recorded_under", key) == recorded:
+        return None
+    where = f"key {recorded[:16]}…" if recorded else "no cache key"
+    return f"the cache names {entry['artifact_id'][:12] if entry else 'an artifact'}, recorded under {where}"
+
+
+def _find(workspace: Workspace, key: str) -> tuple[str | None, str | None]:
+    """(artifact id of a valid hit or None, why an answer the index gave was refused or None)."""
+    entry = _read_entry(_index_path(workspace, key))
+    if entry is not None:
+        artifact_id = entry["artifact_id"]
     else:
-        frame = workspace.api.query(
+        _, rows = workspace.api.query_rows(
             "SELECT id FROM artifacts WHERE json_extract_string(config, '$.cache_key') = ? "
             "ORDER BY created_at DESC LIMIT 1",
             [key],
         )
-        if frame.empty:
-            return None
-        artifact_id = str(frame.iloc[0, 0])
-    return artifact_id if workspace.artifact_is_intact(artifact_id) else None
+        if not rows:
+            return None, None
+        artifact_id = str(rows[0][0])
+    try:
+        record = workspace.api.get(artifact_id)
+    except (ArtifactError, OSError):  # gone (or its sidecar is): a plain miss
+        return None, None
+    problem = entry_problem(key, entry, recorded_key(record))
+    if problem is not None:
+        return None, problem
+    if not workspace.artifact_is_intact(artifact_id):
+        return None, None
+    lost = [
+        f"{p.role} {p.id[:12]}"
+        for p in record.parents
+        if p.role in COMPANION_ROLES and not workspace.artifact_is_intact(p.id)
+    ]
+    if lost:
+        return None, f"{artifact_id[:12]} names missing or corrupt artifacts it was registered with: " + (
+            ", ".join(lost)
+        )
+    return artifact_id, None
+
+
+def lookup(workspace: Workspace, key: str) -> str | None:
+    """The artifact id stored for `key`, if it is still in the store, verifies, is this key's result
+    (see the module's docstring) and every artifact registered with it is intact.
+
+    Without an index entry (a crash between registration and `remember`), the catalogue is asked
+    for an artifact registered with this cache key, so finished work is never done twice.
+    """
+    return _find(workspace, key)[0]
 
 
 def remember(workspace: Workspace, key: str, artifact_id: str) -> None:
+    """Write the index entry key -> artifact id, with the key and the key the artifact is recorded
+    under (they differ only when this computation gave bytes first registered by another key)."""
+    try:
+        recorded = recorded_key(workspace.api.get(artifact_id))
+    except (ArtifactError, OSError):
+        recorded = None
     path = _index_path(workspace, key)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
     with os.fdopen(fd, "w") as handle:
-        json.dump({"artifact_id": artifact_id}, handle)
+        json.dump({"artifact_id": artifact_id, "cache_key": key, "recorded_under": recorded}, handle)
         handle.flush()
         os.fsync(handle.fileno())
     os.replace(tmp, path)
+
+
+def index_problems(home: str, api: Any) -> list[tuple[str, str]]:
+    """(key, problem) for each index entry that names an artifact recorded under another key (what
+    `capvector verify --all` reports; a run treats such an entry as a miss). Reads only."""
+    problems = []
+    folder = index_dir(home)
+    for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        key = path.stem
+        entry = _read_entry(path)
+        if entry is None:
+            problems.append((key, "unreadable entry"))
+            continue
+        try:
+            record = api.store.get(entry["artifact_id"])
+        except (ArtifactError, OSError):
+            continue  # a missing artifact is recomputed by the next run; verify reports the store's own
+        if entry.get("cache_key", key) != key:
+            problems.append((key, f"the entry was written for key {str(entry['cache_key'])[:16]}…"))
+            continue
+        problem = entry_problem(key, entry, recorded_key(record))
+        if problem is not None:
+            problems.append((key, problem))
+    return problems
+
+
+def warn(line: str) -> None:
+    """One warning line on stderr (also when progress is quiet) and in the run's log file."""
+    from tasks.progress import LOG_FILE_ENV
+
+    data = f"{time.strftime('%H:%M:%S')} warning: {line}\n".encode()
+    try:
+        os.write(2, data)
+    except OSError:
+        pass
+    log = os.environ.get(LOG_FILE_ENV)
+    if log:
+        fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, data)
+        finally:
+            os.close(fd)
+
+
+@contextmanager
+def step_lock(workspace: Workspace, key: str, label: str) -> Iterator[None]:
+    """Hold the exclusive lock of content key `key` (an flock, released by the kernel when its holder
+    dies); says once that it waits when another process holds it."""
+    path = workspace.local_root / "locks" / f"{key}.lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            from tasks.progress import emit
+
+            emit(f"[{label}] waiting for another run that is computing this step ({path.name})")
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing the only descriptor releases the lock
 
 
 def cached_step(
@@ -131,16 +289,30 @@ def cached_step(
     inputs: dict[str, str],
     config: dict[str, Any],
     produce: Callable[[str], str],
+    step: str | None = None,
 ) -> str:
-    """Return the artifact for this step's content key, calling `produce(key)` only when needed."""
+    """Return the artifact for this step's content key, calling `produce(key)` only when needed.
+
+    `step`: the step's label for warnings (default: the pipeline step being run, else `kind`). A
+    refused index answer is warned about once, and recomputed. Compute-and-register runs under the
+    key's lock; the cache is asked again once it is held (another run may just have finished it).
+    """
     key = content_key(kind, inputs, config, produce.__module__)
-    existing = lookup(workspace, key)
+    existing, problem = _find(workspace, key)
     if existing is not None:
         _record("cached")
         return existing
     if _probing.get():
         raise NotCached(key)
-    artifact_id = produce(key)
-    remember(workspace, key, artifact_id)
+    label = step or _step_label.get() or kind
+    if problem is not None:
+        warn(f"step {label!r}: cache entry refused, recomputing: {problem}")
+    with step_lock(workspace, key, label):
+        existing, _ = _find(workspace, key)
+        if existing is not None:
+            _record("cached")
+            return existing
+        artifact_id = produce(key)
+        remember(workspace, key, artifact_id)
     _record("produced")
     return artifact_id

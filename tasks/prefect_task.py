@@ -32,7 +32,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed
 
-from tasks.caching import NotCached, probing, step_outcomes
+from tasks.caching import NotCached, probing, step_label, step_outcomes
 
 WATCHDOG_PERIOD_S = 0.25
 PR_SET_PDEATHSIG = 1
@@ -60,7 +60,7 @@ def pipeline_task(
         def run_step(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> Any:
             refuse_if_abandoned(step)
             try:
-                with step_outcomes() as outcomes:
+                with step_outcomes() as outcomes, step_label(step):
                     artifact_id = fn(home, step, inputs, config)
             except Exception as exc:
                 exc.add_note(f"in step {step!r}")  # the CLI's one-line error names the step
@@ -74,7 +74,7 @@ def pipeline_task(
             if not content_cached:
                 return None
             try:
-                with probing():
+                with probing(), step_label(step):
                     return fn(home, step, inputs, config)
             except NotCached:
                 return None

@@ -236,7 +236,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
         workspace.finish_run_dir(key)
         return checkpoint.id
 
-    return cached_step(workspace, "train", inputs, config, produce)
+    return cached_step(workspace, "train", inputs, config, produce, step=step)
 
 
 def snapshots_of(workspace: Workspace, checkpoint_id: str) -> dict[int, str]:
