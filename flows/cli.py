@@ -240,23 +240,28 @@ def study(
     ] = "study-small",
     overrides: SetOption = None,
     home: HomeOption = None,
-    report: Annotated[Path | None, typer.Option(help="also write the Markdown report to this file")] = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(help="write the Markdown report and its figures here (default: <home>/reports/)"),
+    ] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
     from flows.study import study_flow
     from flows.study_config import load_study
+    from flows.study_figures import default_report_path, write_study_report
 
     config = load_study(preset, overrides)
     _preflight(f"study --preset {preset}", home)
     result = study_flow(config.model_dump(mode="json"), resolve_home(home))
-    if report is not None:
-        report.write_text(result["markdown"])
+    ws = _workspace(home)
+    written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
     if as_json:
-        _print_json({k: v for k, v in result.items() if k != "markdown"})
+        _print_json({**{k: v for k, v in result.items() if k != "markdown"}, "report_file": str(written)})
         return
     typer.echo(result["markdown"])  # Markdown as written (a console would re-wrap its tables)
     typer.echo(f"study: {result['report']}   (capvector lineage {result['report'][:12]})")
+    typer.echo(f"report and figures: {written}")
 
 
 @app.command()
@@ -441,10 +446,12 @@ def compare(
 
 @app.command()
 def report(
-    report_id: Annotated[str | None, typer.Argument(help="report artifact (default: the latest)")] = None,
-    out: Annotated[Path, typer.Option("-o", "--out", help="Markdown file to write")] = Path(
-        "docs/results.md"
-    ),
+    report_id: Annotated[
+        str | None, typer.Argument(help="a study or report artifact (default: the latest study, else report)")
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option("-o", "--out", help="Markdown file to write (default: <home>/reports/)")
+    ] = None,
     section: Annotated[
         list[str] | None,
         typer.Option(help="'TITLE=REPORT_ID': another report as an extra table (repeatable)"),
@@ -455,7 +462,18 @@ def report(
     notes: Annotated[Path | None, typer.Option(help="a Markdown file of analysis to include")] = None,
     home: HomeOption = None,
 ) -> None:
-    """Markdown + PNG figures: comparison, convergence, sweep, vector statistics, training curves."""
+    """Markdown + PNG figures of a study (curves, paired differences, per task) or a pipeline report."""
+    from flows.study_figures import default_report_path, latest_study_id, write_study_report
+
+    ws = _workspace(home)
+    record = ws.api.get(report_id) if report_id else None
+    study_id = record.id if record is not None and record.kind == "study" else None
+    if record is None:
+        study_id = latest_study_id(ws)
+    if study_id is not None:
+        path = write_study_report(ws, study_id, out or default_report_path(ws, study_id))
+        console.print(f"wrote {path} and its figures")
+        return
     from flows.report import latest_report_id, write_report
 
     sections = {}
@@ -464,9 +482,10 @@ def report(
             raise typer.BadParameter(f"--section {item!r} must look like 'TITLE=REPORT_ID'")
         title, rid = item.rsplit("=", 1)
         sections[title] = rid
-    ws = _workspace(home)
+    rid = record.id if record is not None else latest_report_id(ws)
+    target = out or Path(ws.home) / "reports" / f"report-{rid[:12]}.md"
     text = notes.read_text() if notes else None
-    path = write_report(ws, report_id or latest_report_id(ws), out, sections, sweep_id, text)
+    path = write_report(ws, rid, target, sections, sweep_id, text)
     console.print(f"wrote {path}")
 
 

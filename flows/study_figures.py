@@ -99,6 +99,19 @@ def plot_per_task(report: StudyReport, path: Path) -> Path | None:
     return path
 
 
+def latest_study_id(workspace: Workspace) -> str | None:
+    _, rows = workspace.api.query_rows(
+        "SELECT id FROM artifacts WHERE kind = 'study' ORDER BY created_at DESC LIMIT 1"
+    )
+    return str(rows[0][0]) if rows else None
+
+
+def default_report_path(workspace: Workspace, study_id: str) -> Path:
+    """Reports go into the home (`reports/`), never over a tracked file of the directory run from."""
+    name = workspace.api.get(study_id).name.removeprefix("analyse study ").replace(" ", "-")
+    return Path(workspace.home) / "reports" / f"{name}-{study_id[:12]}.md"
+
+
 def write_study_report(workspace: Workspace, study_id: str, out: Path) -> Path:
     """`out` (Markdown) and its figures `<stem>_*.png` beside it; returns the Markdown path."""
     report = load_study_report(workspace, study_id)

@@ -115,6 +115,25 @@ def test_the_report_states_preconditions_comparisons_and_the_design(study_home):
         assert c.n_goals == report.goals_per_task * len(report.tasks)
 
 
+def test_the_study_report_has_figures_and_no_interval_outside_its_range(study_home, tmp_path):
+    home, ids = study_home
+    default = sorted((home / "reports").glob("study-smoke-*.md"))  # `study` wrote it into the home
+    assert default and default[0].read_text().startswith("# Study `study-smoke`")
+    out = tmp_path / "report" / "smoke.md"
+    proc = run_cli("report", ids["report"][:12], "-o", str(out), home=home)
+    assert "wrote" in proc.stdout
+    text = out.read_text()
+    figures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert len(figures) >= 2
+    for name in figures:
+        assert (out.parent / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for low, high in re.findall(r"\[([+-]?\d+\.\d), ([+-]?\d+\.\d)\]", text):
+        assert -100 <= float(low) <= float(high) <= 100, (low, high)
+    assert "(e)" in text and "endpoint" in text
+    latest = run_cli("report", "-o", str(tmp_path / "latest.md"), home=home)  # the latest study
+    assert "wrote" in latest.stdout and (tmp_path / "latest.md").exists()
+
+
 def test_a_second_run_is_answered_by_the_cache(study_home):
     home, ids = study_home
     again = json.loads(run_cli("study", "--preset", "study-smoke", "--json", home=home).stdout)
