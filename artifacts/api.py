@@ -323,6 +323,12 @@ class ArtifactsAPI:
         self._flush()
         return self.catalogue.query_rows(sql, params)
 
+    def copy_to(self, sql: str, params: Any, path: str | os.PathLike[str], fmt: str = "parquet") -> int:
+        """The rows of one reading statement written to `path` (Parquet or CSV, by DuckDB's COPY); how
+        many rows."""
+        self._flush()
+        return self.catalogue.copy_to(sql, params, path, fmt)
+
     # ---------------------------------------------------------------- maintenance
     def rebuild(self) -> RebuildReport:
         """Recreate the catalogue from the store alone."""

@@ -925,6 +925,50 @@ class Catalogue:
         """`query` without pandas: (column names, rows as tuples of Python values)."""
         return self._query(sql, params, lambda res: ([d[0] for d in res.description], res.fetchall()))
 
+    def copy_to(
+        self,
+        sql: str,
+        params: Sequence[Any] | dict[str, Any] | None,
+        path: str | os.PathLike[str],
+        fmt: str = "parquet",
+    ) -> int:
+        """Write the rows of one reading statement to `path` with DuckDB's COPY (`fmt`: parquet or csv),
+        atomically (a temporary file in the same folder, then a rename); returns the number of rows.
+
+        The guards of `query`, except that this one file may be written: one reading statement, the
+        catalogue attached read-only, external access off for any other path, configuration locked. The
+        shared lock is held while the file is written (a study's episodes take well under a second)."""
+        check_read_only(sql)
+        if fmt not in ("parquet", "csv"):
+            raise ValueError(f"unknown format {fmt!r}: parquet or csv")
+        self._ensure_ready()
+        target = Path(path).resolve()
+        tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+        files = [self.path.resolve(), self.path.resolve().with_name(self.path.name + ".wal"), tmp]
+
+        def quoted(p: Path) -> str:
+            return "'" + str(p).replace("'", "''") + "'"
+
+        def work() -> int:
+            con = duckdb.connect(":memory:", config={"threads": 1})
+            try:
+                con.execute(f"SET allowed_paths = [{', '.join(quoted(f) for f in files)}]")
+                con.execute("SET enable_external_access = false")
+                con.execute("SET lock_configuration = true")
+                con.execute(f"ATTACH {quoted(files[0])} AS catalogue (READ_ONLY)")
+                con.execute("USE catalogue")
+                row = con.execute(f"COPY ({sql}) TO {quoted(tmp)} (FORMAT {fmt})", params).fetchone()
+                return int(row[0]) if row else 0
+            finally:
+                con.close()
+
+        try:
+            n = self._retrying(work)
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return n
+
     def _query(self, sql: str, params: Any, fetch: Callable[[duckdb.DuckDBPyConnection], Any]) -> Any:
         check_read_only(sql)
 

@@ -20,7 +20,8 @@ import typer
 from artifacts.errors import ArtifactError
 from flows.catalogue_commands import catalogue_app
 from flows.home import resolve_home, set_root_home
-from flows.lineage_views import as_mermaid, as_tree
+from flows.lineage_views import as_mermaid, as_tree, keep_kinds
+from flows.table_commands import export, runs
 from flows.verify_command import verify
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help=__doc__)
@@ -32,6 +33,8 @@ app.add_typer(artifacts_app, name="artifacts")
 app.add_typer(vector_app, name="vector")
 app.add_typer(catalogue_app, name="catalogue")
 app.command("verify")(verify)
+app.command("runs")(runs)
+app.command("export")(export)
 
 
 class _LazyConsole:
@@ -342,12 +345,23 @@ def lineage(
     descendants: Annotated[bool, typer.Option("--descendants", help="what descends from it")] = False,
     fmt: Annotated[str, typer.Option("--format", help="tree | json | mermaid")] = "tree",
     depth: Annotated[int | None, typer.Option(help="maximum depth")] = None,
+    kinds: Annotated[
+        str | None, typer.Option("--kinds", help="only these kinds, e.g. checkpoint,vector (contracted)")
+    ] = None,
+    hide: Annotated[str | None, typer.Option("--hide", help="leave out these kinds (contracted)")] = None,
     home: HomeOption = None,
 ) -> None:
-    """Ancestors (default) or descendants of an artifact, with the role of every edge."""
+    """Ancestors (default) or descendants of an artifact, with the role of every edge.
+
+    `--kinds`/`--hide` keep some kinds only; a path through the others becomes one edge (its roles
+    joined by →), so what is kept stays connected, and `--depth` counts the kept hops."""
     ws = _workspace(home)
     record = ws.api.get(artifact_id)
-    rows = (ws.api.descendants if descendants else ws.api.ancestors)(record.id, depth)
+    filtered = kinds is not None or hide is not None
+    rows = (ws.api.descendants if descendants else ws.api.ancestors)(record.id, None if filtered else depth)
+    if filtered:
+        kept, hidden = ({k.strip() for k in v.split(",") if k.strip()} if v else None for v in (kinds, hide))
+        rows = keep_kinds(rows, record, not descendants, kept, hidden, depth)
     if fmt == "json":
         _print_json([r.model_dump() for r in rows])
     elif fmt == "mermaid":

@@ -4,12 +4,18 @@ History is a DAG (θ_pt is a parent of θ_ft, θ_ao and θ_meta), so both views 
 rows: the rows' `links` (artifacts.catalogue.LineageNode); rows without them fall back to the hop each
 row was first reached by. The tree shows each node in full once, under the node it is nearest the root
 through, and every other edge into it as a one-line reference marked ↑ (shown above) or ↓ (below).
+
+At study size a lineage has hundreds of nodes; `keep_kinds` keeps some kinds (checkpoints and vectors,
+say) and contracts the edges through the others, so what is kept stays connected as it was.
 """
 
 from __future__ import annotations
 
+import hashlib
+import re
 import unicodedata
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Collection, Sequence
 
 from artifacts.records import ArtifactRecord, LineageRow
 
@@ -100,8 +106,127 @@ def as_tree(rows: list[LineageRow], root: ArtifactRecord) -> str:
     return "\n".join(lines)
 
 
+# A contracted edge's role: the roles along the hidden path, from parent to child.
+CHAIN = " → "
+
+
+def keep_kinds(
+    rows: Sequence[LineageRow],
+    root: ArtifactRecord,
+    ancestors: bool,
+    kinds: Collection[str] | None = None,
+    hide: Collection[str] | None = None,
+    max_depth: int | None = None,
+) -> list[LineageRow]:
+    """The rows of the kinds kept (`kinds`: only these, if given; `hide`: not these; the root always),
+    with every path through the others contracted into one edge, so ancestry stays connected.
+
+    A kept node is linked to each nearest kept node beyond it (away from the root): by its direct
+    edges when there are any, else by one edge whose role is the roles of the shortest hidden path
+    joined by CHAIN (parent to child). Depths and paths count kept hops, and `max_depth` applies to
+    them (walk the full lineage first: a depth in the walk counts hidden hops too). Rows of an
+    artifact without a catalogue row (kind None) are hidden by `kinds` and kept by `hide`."""
+
+    def visible(kind: str | None) -> bool:
+        return (kinds is None or kind in kinds) and (hide is None or kind not in hide)
+
+    by_id = {r.id: r for r in rows}
+    kept = {root.id} | {r.id for r in rows if visible(r.kind)}
+    away: dict[str, list[tuple[str, str]]] = {}  # node -> (next node away from the root, role)
+    for near, far, role, parent in lineage_edges(rows, root.id):
+        if not parent:  # fallback hop: parent by direction
+            parent = far if ancestors else near
+        child = near if parent == far else far
+        src, dst = (child, parent) if ancestors else (parent, child)
+        away.setdefault(src, []).append((dst, role))
+    for items in away.values():
+        items.sort()
+
+    edges: dict[tuple[str, str], list[str]] = {}  # (near, far) in kept nodes -> roles
+    for start in sorted(kept):
+        direct: dict[str, list[str]] = {}
+        via: dict[str, tuple[str, ...]] = {}
+        queue, seen = deque([(start, ())]), {start}
+        while queue:  # breadth first through hidden nodes: the first path found is a shortest
+            node, chain = queue.popleft()
+            for nxt, role in away.get(node, []):
+                if nxt in kept:
+                    if node == start:
+                        direct.setdefault(nxt, []).append(role)
+                    else:
+                        via.setdefault(nxt, (*chain, role))
+                elif nxt not in seen:
+                    seen.add(nxt)
+                    queue.append((nxt, (*chain, role)))
+        for far in sorted(set(direct) | set(via)):
+            chain = via.get(far, ())
+            edges[start, far] = direct.get(far) or [CHAIN.join(reversed(chain) if ancestors else chain)]
+
+    # Depths and paths over the kept graph: breadth first from the root, each node's path extending
+    # that of its smallest (near end, role) edge from the level before, as the catalogue's walk does.
+    beyond: dict[str, list[tuple[str, list[str]]]] = {}
+    for (near, far), roles in edges.items():
+        beyond.setdefault(near, []).append((far, roles))
+    depth, paths = {root.id: 0}, {root.id: ([root.id], [])}
+    frontier = [root.id]
+    while frontier and (max_depth is None or depth[frontier[0]] < max_depth):
+        hops: dict[str, tuple[str, str]] = {}
+        for near in frontier:
+            for far, roles in beyond.get(near, []):
+                if far not in depth:
+                    hops[far] = min(hops.get(far, (near, min(roles))), (near, min(roles)))
+        for far, (near, role) in hops.items():
+            depth[far] = depth[near] + 1
+            ids, path_roles = paths[near]
+            paths[far] = ([*ids, far], [*path_roles, role])
+        frontier = sorted(hops)
+    links: dict[str, list[tuple[str, str, str]]] = {}  # a row's links: its edges towards the root
+    for (near, far), roles in edges.items():
+        if near in depth and far in depth:
+            links.setdefault(far, []).extend((far, near, r) if ancestors else (near, far, r) for r in roles)
+    out = []
+    for node in sorted((n for n in depth if n != root.id), key=lambda n: (depth[n], n)):
+        ids, path_roles = paths[node]
+        update = {"depth": depth[node], "path": ids, "roles": path_roles, "links": links.get(node, [])}
+        out.append(by_id[node].model_copy(update=update))
+    return out
+
+
+# Fill colours of the kinds the project registers; any other kind gets one from FALLBACK_FILLS.
+KIND_FILLS = {
+    "checkpoint": "#cfe2ff",
+    "vector": "#ffe08a",
+    "dataset": "#d1f2d9",
+    "evaluation": "#eadcff",
+    "report": "#ffd6d6",
+    "vector_stats": "#fff4c2",
+    "selection": "#d9f3f7",
+    "adapter": "#e6e6e6",
+}
+FALLBACK_FILLS = ("#f8d7ee", "#dff0c8", "#fde2c8", "#d6e4f0", "#ece0d1")
+
+
+def _kind_class(kind: str | None) -> str:
+    """A Mermaid class name for a kind: its letters, digits and underscores, plus a hash of the kind
+    when it has any other character (so two kinds never share a class)."""
+    if kind is None:
+        return "kind_unknown"
+    safe = re.sub(r"[^A-Za-z0-9_]", "_", kind)
+    if safe != kind:
+        safe += "_" + hashlib.sha256(kind.encode()).hexdigest()[:8]
+    return f"kind_{safe}"
+
+
+def _kind_fill(kind: str | None) -> str:
+    if kind in KIND_FILLS:
+        return KIND_FILLS[kind]
+    digest = hashlib.sha256((kind or "").encode()).digest()
+    return FALLBACK_FILLS[digest[0] % len(FALLBACK_FILLS)]
+
+
 def as_mermaid(rows: list[LineageRow], root: ArtifactRecord, ancestors: bool) -> str:
-    """`graph BT` for ancestors (arrows point from parent to child), `graph TD` for descendants."""
+    """`graph BT` for ancestors (arrows point from parent to child), `graph TD` for descendants; nodes
+    are coloured by kind (a `classDef` per kind, then the nodes of each)."""
     lines = ["graph " + ("BT" if ancestors else "TD")]
     names = {r.id: _label(r.id, r.kind, r.name) for r in rows}
     names[root.id] = _label(root.id, root.kind, root.name)
@@ -116,4 +241,13 @@ def as_mermaid(rows: list[LineageRow], root: ArtifactRecord, ancestors: bool) ->
         lines.append(f"    {node(parent)} -->|{mermaid_text(role)}| {node(child)}")
     if len(lines) == 1:
         lines.append(f"    {node(root.id)}")
+    kinds = {r.id: r.kind for r in rows} | {root.id: root.kind}
+    drawn = {m for line in lines[1:] for m in re.findall(r"\bn([0-9a-f]{12})\[", line)}
+    by_class: dict[str, tuple[str | None, list[str]]] = {}
+    for artifact_id, kind in sorted(kinds.items(), key=lambda kv: kv[0]):
+        if artifact_id[:12] in drawn:
+            by_class.setdefault(_kind_class(kind), (kind, []))[1].append(f"n{artifact_id[:12]}")
+    for cls, (kind, nodes) in sorted(by_class.items()):
+        lines.append(f"    classDef {cls} fill:{_kind_fill(kind)},stroke:#555")
+        lines.append(f"    class {','.join(nodes)} {cls}")
     return "\n".join(lines)

@@ -296,6 +296,8 @@ def mermaid_edges(text: str) -> set[tuple[str, str, str]]:
     assert lines[0] in ("graph BT", "graph TD")
     edges = set()
     for line in lines[1:]:
+        if line.strip().startswith(("classDef ", "class ")):  # colours by kind
+            continue
         m = MERMAID_EDGE.search(line.strip())
         assert m, line
         edges.add((m["a"], m["b"], m["role"]))
