@@ -63,6 +63,9 @@ err = _LazyConsole(stderr=True)
 HomeOption = Annotated[str | None, typer.Option("--home", help="capvector home (default: $CAPVECTOR_HOME)")]
 JsonOption = Annotated[bool, typer.Option("--json", help="print machine-readable JSON")]
 SetOption = Annotated[list[str] | None, typer.Option("--set", help="override a config key: a.b=value")]
+DryRunOption = Annotated[
+    bool, typer.Option("--dry-run", help="print the plan's steps, cached or to run, and run nothing")
+]
 
 
 class State:
@@ -111,10 +114,17 @@ def _preflight(command: str, home: str | None) -> None:
     is up (a configured but unreachable one is an error naming its address, not a hang)."""
     from flows.run_server import wait_for_api
     from tasks.prefect_task import quiet_failed_run_logs
-    from tasks.progress import LOG_FILE_ENV, emit
 
     wait_for_api()  # first: an unreachable server must leave no home behind
-    if not os.environ.get(LOG_FILE_ENV):  # step workers inherit it
+    _start_log(command, home)
+    quiet_failed_run_logs()  # main() prints a failing run's error, in one line
+
+
+def _start_log(command: str, home: str | None) -> None:
+    """Progress to a log file in the home as well as the terminal (step workers inherit the path)."""
+    from tasks.progress import LOG_FILE_ENV, emit
+
+    if not os.environ.get(LOG_FILE_ENV):
         from datetime import UTC, datetime
 
         logs = _workspace(home).local_root / "logs"
@@ -123,7 +133,34 @@ def _preflight(command: str, home: str | None) -> None:
         slug = "-".join(command.replace("--preset", "").split())
         os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
     emit(f"capvector {command}: home {resolve_home(home)}, log {os.environ[LOG_FILE_ENV]}")
-    quiet_failed_run_logs()  # main() prints a failing run's error, in one line
+
+
+def _from_cache(command: str, home: str, plan, total: int, label: str, dry_run: bool = False):
+    """Know before starting: the plan's result when the content cache answers every step (no Prefect
+    run, server wait or worker), else None. `dry_run` prints the plan's cache status and exits."""
+    from artifacts.home import is_local
+    from flows.steps import CacheProbe, NotAllCached
+
+    if is_local(home) and not Path(home).exists() and not dry_run:
+        return None  # a new home caches nothing (and an unreachable server must leave none behind)
+    probe = CacheProbe(home, total, label)
+    try:
+        result, missing = plan(probe), None
+    except NotAllCached as exc:
+        result, missing = None, str(exc)
+    if dry_run:
+        for step, artifact_id in probe.answered:
+            typer.echo(f"cached  {artifact_id[:12]}  {step}")
+        if missing is None:
+            typer.echo(f"all {total} steps cached: `capvector {command}` prints its result at once")
+        else:
+            todo = total - len(probe.answered)
+            typer.echo(f"to run  {missing}, then what depends on it ({todo} of {total} steps to run)")
+        raise typer.Exit(0)
+    if missing is None:
+        _start_log(command, home)
+        probe.replay()
+    return result
 
 
 def _runner(runner: str, workers: int):
@@ -150,15 +187,23 @@ def run(
     overrides: SetOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
+    dry_run: DryRunOption = False,
 ) -> None:
     """Run the whole recipe (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> eval -> report."""
     from flows.config import load_config
-    from flows.pipeline import pipeline
+    from flows.pipeline import pipeline, pipeline_steps, run_pipeline
 
     config = load_config(preset, overrides)
     home = resolve_home(home)
-    _preflight(f"run --preset {preset}", home)
-    ids = pipeline(config.model_dump(mode="json"), home)
+    command = f"run --preset {preset}"
+    plan = lambda steps: run_pipeline(steps, config)  # noqa: E731
+    ids = _from_cache(command, home, plan, pipeline_steps(config), f"pipeline {config.name}", dry_run)
+    if ids is None:
+        from flows.runs import run_tags
+
+        _preflight(command, home)
+        with run_tags("run", config.name):
+            ids = pipeline(config.model_dump(mode="json"), home)
     if as_json:
         _print_json(ids)
         return
@@ -203,7 +248,10 @@ def evaluate(
     task_runner = _runner(runner, workers)
     if task_runner is not None:
         flow_fn = evaluate_flow.with_options(task_runner=task_runner)
-    result = flow_fn(resolve_home(home), checkpoints, config.model_dump(mode="json"))
+    from flows.runs import run_tags
+
+    with run_tags("evaluate"):
+        result = flow_fn(resolve_home(home), checkpoints, config.model_dump(mode="json"))
     from artifacts.scores import read_scores
 
     scores = {s.evaluation_id: s for s in read_scores(_workspace(home).api, evaluations=result.values())}
@@ -229,7 +277,10 @@ def reevaluate(
     from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
 
     _preflight("reevaluate", home)
-    changes = reevaluate_flow(resolve_home(home), query or DEFAULT_SELECTION)
+    from flows.runs import run_tags
+
+    with run_tags("reevaluate"):
+        changes = reevaluate_flow(resolve_home(home), query or DEFAULT_SELECTION)
     if as_json:
         _print_json(changes)
     else:
@@ -239,8 +290,9 @@ def reevaluate(
 @app.command()
 def study(
     preset: Annotated[
-        str, typer.Option(help="study-small | study-state | study-pixels | a YAML path")
-    ] = "study-small",
+        str,
+        typer.Option(help="study-control-small | study-control | study-state | study-pixels | a YAML path"),
+    ] = "study-control-small",
     overrides: SetOption = None,
     home: HomeOption = None,
     report: Annotated[
@@ -248,15 +300,25 @@ def study(
         typer.Option(help="write the Markdown report and its figures here (default: <home>/reports/)"),
     ] = None,
     as_json: JsonOption = False,
+    dry_run: DryRunOption = False,
 ) -> None:
     """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
-    from flows.study import study_flow
+    from functools import partial
+
+    from flows.study import plan_study, study_flow, study_steps
     from flows.study_config import load_study
     from flows.study_figures import default_report_path, write_study_report
 
     config = load_study(preset, overrides)
-    _preflight(f"study --preset {preset}", home)
-    result = study_flow(config.model_dump(mode="json"), resolve_home(home))
+    command, label = f"study --preset {preset}", f"study {config.name}"
+    plan = partial(plan_study, config)
+    result = _from_cache(command, resolve_home(home), plan, study_steps(config), label, dry_run)
+    if result is None:
+        from flows.runs import run_tags
+
+        _preflight(command, home)
+        with run_tags("study", config.name):
+            result = study_flow(config.model_dump(mode="json"), resolve_home(home))
     ws = _workspace(home)
     written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
     if as_json:
@@ -280,7 +342,10 @@ def sweep(
 
     config = load_config(preset, overrides)
     _preflight(f"sweep --preset {preset}", home)
-    result = sweep_flow(config.model_dump(mode="json"), resolve_home(home))
+    from flows.runs import run_tags
+
+    with run_tags("sweep", config.name):
+        result = sweep_flow(config.model_dump(mode="json"), resolve_home(home))
     if as_json:
         _print_json(result)
     else:

@@ -8,7 +8,7 @@ from prefect import flow
 
 from artifacts.scores import read_scores
 from capvector_core.evaluation import EvalConfig
-from flows.runs import publish_markdown, recorded_run
+from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
 from tasks.evaluation import evaluate_task, reevaluate_task
 from tasks.workspace import Workspace, workspace_for
@@ -17,7 +17,7 @@ from tasks.workspace import Workspace, workspace_for
 DEFAULT_SELECTION = "SELECT DISTINCT checkpoint_id FROM eval_tasks"
 
 
-@flow(name="evaluate", log_prints=True, persist_result=False)
+@flow(name="evaluate", flow_run_name=run_name, log_prints=True, persist_result=False)
 def evaluate_flow(home: str, checkpoint_ids: list[str], config: dict[str, Any]) -> dict[str, str]:
     """Evaluate each checkpoint under one protocol (cached: the same checkpoint and protocol run once)."""
     workspace = workspace_for(home)
@@ -50,7 +50,7 @@ def _latest_scores(workspace: Workspace, checkpoint_id: str) -> dict[str, dict[s
     return {s.fingerprint: s.success_rates for s in read_scores(workspace.api, checkpoints=[checkpoint_id])}
 
 
-@flow(name="reevaluate", log_prints=True, persist_result=False)
+@flow(name="reevaluate", flow_run_name=run_name, log_prints=True, persist_result=False)
 def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[dict[str, Any]]:
     """Re-run every (checkpoint, protocol) the selection yields under the installed library versions.
 

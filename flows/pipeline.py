@@ -19,7 +19,7 @@ from prefect import flow
 from prefect.task_runners import ProcessPoolTaskRunner
 
 from flows.config import ARMS, PipelineConfig
-from flows.runs import publish_markdown, recorded_run
+from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
 from tasks.data import collect_demos_task
 from tasks.evaluation import evaluate_task
@@ -130,37 +130,45 @@ def pipeline_steps(config: PipelineConfig) -> int:
     return vector_stage_steps() + 2 * checkpoints + 1 + ood
 
 
-@flow(name="pipeline", log_prints=True, task_runner=step_runner(), persist_result=False)
+@flow(
+    name="pipeline", flow_run_name=run_name, log_prints=True, task_runner=step_runner(), persist_result=False
+)
 def pipeline(config: dict[str, Any], home: str) -> dict[str, Any]:
     """Run (or resume from cache) the recipe; returns the artifact ids of every product."""
     cfg = PipelineConfig.model_validate(config)
     workspace = workspace_for(home)
     steps = StepRunner(home, pipeline_steps(cfg), f"pipeline {cfg.name}")
     with recorded_run(workspace, "pipeline", {"config": config, "home": home}):
-        stage = submit_vector_stage(steps, cfg)
-        eval_config = _dump(cfg.eval_config())
-        checkpoints = {
-            f"{arm}/seed{seed}": submit_arm(steps, cfg, stage, arm, seed)
-            for arm in cfg.arms
-            for seed in cfg.seeds
-        }
-        evaluations = {
-            label: steps.submit(evaluate_task, f"evaluate {label}", {"checkpoint": ckpt}, eval_config)
-            for label, ckpt in checkpoints.items()
-        }
-        # Results in the order the steps depend on each other: a failed step raises its own error here
-        # (naming the step), not a later step's UpstreamTaskError naming a task-run id.
-        ids = {
-            "datasets": {k: resolve(f) for k, f in stage["data"].items()},
-            **{k: resolve(stage[k]) for k in ("pretrained", "standard", "auxiliary", "vector", "meta")},
-            "checkpoints": {k: resolve(f) for k, f in checkpoints.items()},
-            "evaluations": {k: resolve(f) for k, f in evaluations.items()},
-        }
-        report_step = steps.submit(report_task, f"report {cfg.name}", ids["evaluations"], {"name": cfg.name})
-        report = ids["report"] = resolve(report_step)
-        ood_report = _submit_ood_report(steps, cfg, ids["checkpoints"])
-        if ood_report is not None:
-            ids["ood_report"] = ood_report
-        summary = load_report(workspace, report).markdown
+        ids = run_pipeline(steps, cfg)
+        summary = load_report(workspace, ids["report"]).markdown
         publish_markdown(f"{cfg.name}-summary", summary, f"capvector pipeline {cfg.name}")
+    return ids
+
+
+def run_pipeline(steps: StepRunner, cfg: PipelineConfig) -> dict[str, Any]:
+    """Submit the recipe's steps to `steps` (a flow's runner, or a CacheProbe); the products' ids."""
+    stage = submit_vector_stage(steps, cfg)
+    eval_config = _dump(cfg.eval_config())
+    checkpoints = {
+        f"{arm}/seed{seed}": submit_arm(steps, cfg, stage, arm, seed)
+        for arm in cfg.arms
+        for seed in cfg.seeds
+    }
+    evaluations = {
+        label: steps.submit(evaluate_task, f"evaluate {label}", {"checkpoint": ckpt}, eval_config)
+        for label, ckpt in checkpoints.items()
+    }
+    # Results in the order the steps depend on each other: a failed step raises its own error here
+    # (naming the step), not a later step's UpstreamTaskError naming a task-run id.
+    ids = {
+        "datasets": {k: resolve(f) for k, f in stage["data"].items()},
+        **{k: resolve(stage[k]) for k in ("pretrained", "standard", "auxiliary", "vector", "meta")},
+        "checkpoints": {k: resolve(f) for k, f in checkpoints.items()},
+        "evaluations": {k: resolve(f) for k, f in evaluations.items()},
+    }
+    report_step = steps.submit(report_task, f"report {cfg.name}", ids["evaluations"], {"name": cfg.name})
+    ids["report"] = resolve(report_step)
+    ood_report = _submit_ood_report(steps, cfg, ids["checkpoints"])
+    if ood_report is not None:
+        ids["ood_report"] = ood_report
     return ids

@@ -31,6 +31,20 @@ def recorded_run(workspace: Workspace, flow_name: str, parameters: dict[str, Any
     workspace.api.record_run(run.model_copy(update={"state": "COMPLETED", "ended_at": utcnow()}))
 
 
+def run_name() -> str:
+    """`<flow> <preset> <short id>` for the Prefect UI (not a generated "sandy-tanuki")."""
+    config = flow_run.parameters.get("config") or {}
+    preset = config.get("name") if isinstance(config, dict) else None
+    return " ".join(part for part in (flow_run.flow_name, preset, str(flow_run.id or "")[:8]) if part)
+
+
+def run_tags(command: str, preset: str | None = None) -> Any:
+    """Tags of a flow run (and its task runs) for the UI's filters: `capvector`, the command, the preset."""
+    from prefect import tags
+
+    return tags("capvector", command, *([preset] if preset else []))
+
+
 def publish_markdown(key: str, markdown: str, description: str) -> None:
     """A Markdown artifact in the Prefect UI (a no-op cost on the embedded API)."""
     create_markdown_artifact(markdown=markdown, key=_key(key), description=description)

@@ -50,6 +50,36 @@ class StepRunner:
             emit(f"[{self.label} {self._finished}/{self.total}] {step}: {outcome}")
 
 
+class NotAllCached(Exception):
+    """The content cache does not answer this step: the plan has work to do."""
+
+
+class CacheProbe(StepRunner):
+    """Answers a plan from the content cache alone, in this process and before Prefect runs anything:
+    every step is looked up as the flow submits it (its inputs are the ids looked up before it), and
+    the first step the cache cannot answer raises `NotAllCached`. A plan it answers whole needs no
+    server, flow run or worker: the command prints its result at once (`--dry-run` lists the steps)."""
+
+    def __init__(self, home: str, total: int, label: str):
+        self.home, self.total, self.label = home, total, label
+        self._finished = 0
+        self._lock = threading.Lock()
+        self.answered: list[tuple[str, str]] = []  # (step, artifact id), in submission order
+
+    def submit(self, step_task: Any, step: str, inputs: dict[str, Any], config: dict[str, Any]) -> Any:
+        artifact_id = step_task.cached_id(self.home, step, inputs, config)
+        if artifact_id is None:
+            raise NotAllCached(step)
+        self.answered.append((step, artifact_id))
+        return artifact_id
+
+    def replay(self) -> None:
+        """The progress lines of a plan the cache answered whole, as a flow run would print them."""
+        emit(f"[{self.label}] {self.total} steps, every one cached: answered without a flow run")
+        for step, _ in self.answered:
+            self._report(step, "cached")
+
+
 def _outcome(future: PrefectFuture) -> str:
     """How a finished step ended. Never raises: it runs as a done-callback, where an exception (a step
     whose upstream failed cannot even be resolved) would be printed as a traceback; the flow reports

@@ -28,7 +28,7 @@ from typing import Any
 from prefect import flow
 
 from flows.pipeline import step_runner, submit_arm
-from flows.runs import publish_markdown, recorded_run
+from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from tasks.data import collect_demos_task
@@ -435,14 +435,21 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
     }
 
 
-@flow(name="study", log_prints=True, task_runner=step_runner(), persist_result=False)
+@flow(name="study", flow_run_name=run_name, log_prints=True, task_runner=step_runner(), persist_result=False)
 def study_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
     """Run (or resume from cache) a study; returns the report's id and the selections' ids."""
     cfg = StudyConfig.model_validate(config)
     workspace = workspace_for(home)
     steps = StepRunner(home, study_steps(cfg), f"study {cfg.name}")
     with recorded_run(workspace, "study", {"config": config, "home": home}):
-        ids = _run_study(_Study(cfg, steps, workspace))
-        markdown = study_markdown(workspace, load_study_report(workspace, ids["report"]))
-        publish_markdown(f"{cfg.name}-study", markdown, f"capvector study {cfg.name}")
-    return {**ids, "markdown": markdown}
+        result = plan_study(cfg, steps)
+        publish_markdown(f"{cfg.name}-study", result["markdown"], f"capvector study {cfg.name}")
+    return result
+
+
+def plan_study(cfg: StudyConfig, steps: StepRunner) -> dict[str, Any]:
+    """Submit the study's steps to `steps` (a flow's runner, or a CacheProbe): the report's and the
+    selections' ids, and the report in Markdown."""
+    workspace = workspace_for(steps.home)
+    ids = _run_study(_Study(cfg, steps, workspace))
+    return {**ids, "markdown": study_markdown(workspace, load_study_report(workspace, ids["report"]))}

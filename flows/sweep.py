@@ -12,7 +12,7 @@ from prefect import flow
 
 from flows.config import ARMS, PipelineConfig
 from flows.pipeline import step_runner, submit_arm, submit_vector_stage, vector_stage_steps
-from flows.runs import publish_markdown, recorded_run
+from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
 from tasks.evaluation import evaluate_task
 from tasks.selection import select_task
@@ -20,7 +20,7 @@ from tasks.vectors import merge_task
 from tasks.workspace import workspace_for
 
 
-@flow(name="sweep", log_prints=True, task_runner=step_runner(), persist_result=False)
+@flow(name="sweep", flow_run_name=run_name, log_prints=True, task_runner=step_runner(), persist_result=False)
 def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
     cfg = PipelineConfig.model_validate(config)
     workspace = workspace_for(home)

@@ -45,6 +45,16 @@ class RunAbandoned(RuntimeError):
     """This worker's run is gone (its CLI died): it must not start or commit anything."""
 
 
+ASCII_NAMES = str.maketrans({"θ": "theta", "γ": "gamma", "α": "alpha", "λ": "lambda", "Δ": "Delta"})
+"""The Prefect UI's run graph drops these letters ("pretrain _pt"): task-run names spell them out."""
+
+
+def _task_run_name() -> str:
+    from prefect.runtime import task_run
+
+    return str(task_run.parameters.get("step", task_run.task_name)).translate(ASCII_NAMES)
+
+
 def pipeline_task(
     name: str, retries: int = 0, content_cached: bool = True
 ) -> Callable[[Callable[..., Any]], Any]:
@@ -84,7 +94,7 @@ def pipeline_task(
             cache_policy=NO_CACHE,
             persist_result=False,
             result_serializer="json",  # should results ever be persisted: JSON strings, not pickles
-            task_run_name="{step}",
+            task_run_name=_task_run_name,
             retries=retries,
         )(run_step)
         prefect_task.cached_id = cached_id

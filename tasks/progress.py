@@ -10,7 +10,9 @@ live bars from several processes would overwrite each other.
 
 from __future__ import annotations
 
+import logging
 import os
+import sys
 import time
 from collections.abc import Callable
 
@@ -26,7 +28,9 @@ def quiet() -> bool:
 
 
 def emit(line: str) -> None:
-    """One progress line, time-stamped, to the terminal (unless quiet) and to the run's log file."""
+    """One progress line, time-stamped, to the terminal (unless quiet), to the run's log file and,
+    inside a Prefect flow or task run, to its logs (the UI's Logs tab)."""
+    _to_prefect(line)
     data = f"{time.strftime('%H:%M:%S')} {line}\n".encode()
     if not quiet():
         try:
@@ -40,6 +44,35 @@ def emit(line: str) -> None:
             os.write(fd, data)
         finally:
             os.close(fd)
+
+
+def _to_prefect(line: str) -> None:
+    """Send the line to the Prefect API's log of the current run, at INFO, whatever the console's level
+    (PREFECT_LOGGING_LEVEL=WARNING keeps Prefect's own INFO flood off the terminal; progress is ours).
+    Only where Prefect is already loaded: read-only commands never import it for this."""
+    if "prefect" not in sys.modules:
+        return
+    from prefect.context import FlowRunContext, TaskRunContext
+    from prefect.logging.loggers import PrefectLogAdapter, get_run_logger
+
+    if TaskRunContext.get() is None and FlowRunContext.get() is None:
+        return
+    try:
+        extra = get_run_logger().extra
+    except Exception:  # no run context after all (e.g. a callback thread): the file has the line
+        return
+    PrefectLogAdapter(_api_logger(), extra=extra).info(line)
+
+
+def _api_logger() -> logging.Logger:
+    logger = logging.getLogger("capvector.progress")
+    if not logger.handlers:
+        from prefect.logging.handlers import APILogHandler
+
+        logger.addHandler(APILogHandler())
+        logger.setLevel(logging.INFO)
+        logger.propagate = False  # the terminal already has the line
+    return logger
 
 
 def progress_printer(step: str, unit: str) -> ProgressCallback:

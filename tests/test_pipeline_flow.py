@@ -199,13 +199,14 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
     assert [(row["alpha"], row["lambda"]) for row in result["grid"]] == [(0.5, 1e-4), (1.1, 1e-4)]
     assert result["best"] == max(result["grid"], key=lambda row: row["validation_success"])
     for row in result["grid"]:
-        evaluation = api.get(row["evaluation_id"]).config
+        (evaluation_id,) = row["evaluation_ids"]  # one budget: the sweep judges the final one
+        evaluation = api.get(evaluation_id).config
         assert evaluation["eval"]["seed_base"] == VALIDATION_SEED_BASE  # never the test seeds
-        (scores,) = read_scores(api, evaluations=[row["evaluation_id"]])
+        (scores,) = read_scores(api, evaluations=[evaluation_id])
         assert scores.mean_success == row["validation_success"]
     # α = 1.1, λ = 1e-4 is the preset's own CapVector arm: the sweep reuses the pipeline's checkpoint
-    assert result["grid"][1]["checkpoint_id"] == ids["checkpoints"]["capvector/seed0"]
-    assert result["grid"][0]["checkpoint_id"] not in ids["checkpoints"].values()
+    assert result["grid"][1]["checkpoint_ids"] == [ids["checkpoints"]["capvector/seed0"]]
+    assert result["grid"][0]["checkpoint_ids"][0] not in ids["checkpoints"].values()
     assert api.get(result["sweep"]).kind == "selection"
 
     one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas=[1.0e-4]"]).model_dump(mode="json")

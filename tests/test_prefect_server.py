@@ -207,3 +207,52 @@ def test_unreachable_server_fails_fast_naming_the_url(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert url in proc.stderr and "not reachable" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "home").exists()
+
+
+def test_runs_are_named_and_tagged_and_step_progress_reaches_the_logs(smoke_home, tmp_path):
+    """The UI shows `pipeline smoke <id>` tagged capvector/run/smoke, task runs spelled in ASCII
+    (θ → theta), and the progress lines printed inside steps run by pool workers in its Logs tab."""
+    home, _ = smoke_home
+    port = _free_port()
+    api_url = f"http://127.0.0.1:{port}/api"
+    prefect = str(Path(sys.executable).parent / "prefect")
+    procs: dict[str, tuple[subprocess.Popen, Path]] = {}
+    try:
+        server_log = tmp_path / "server.log"
+        server = _start(
+            [prefect, "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+            _env(tmp_path / "prefect-server"),
+            server_log,
+        )
+        procs["prefect server"] = (server, server_log)
+        healthy = lambda: (r := _get(f"{api_url}/health")) and r.status_code == 200  # noqa: E731
+        _wait_for("/api/health", healthy, procs, 300)
+        client_env = _env(tmp_path / "prefect-client", PREFECT_API_URL=api_url)
+        run = subprocess.run(  # a changed horizon: every evaluation step runs again in a pool worker
+            [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke", "--set", "evaluation.horizon=30",
+             "--json", "--home", str(home)],  # fmt: skip
+            cwd=REPO,
+            env=client_env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert run.returncode == 0, run.stderr[-4000:]
+        flows = httpx.post(f"{api_url}/flow_runs/filter", json={}, timeout=30).json()
+        (pipeline,) = [f for f in flows if f["name"].startswith("pipeline smoke ")]
+        assert {"capvector", "run", "smoke"} <= set(pipeline["tags"])
+        tasks = httpx.post(
+            f"{api_url}/task_runs/filter", json={"flow_runs": {"id": {"any_": [pipeline["id"]]}}}, timeout=30
+        ).json()
+        names = [t["name"] for t in tasks]
+        assert any("theta" in n for n in names) and not any("θ" in n for n in names)
+
+        def progress() -> list[dict]:
+            body = {"logs": {"flow_run_id": {"any_": [pipeline["id"]]}}, "limit": 200}
+            logs = httpx.post(f"{api_url}/logs/filter", json=body, timeout=30).json()
+            return [g for g in logs if g["task_run_id"] and "episodes" in g["message"]]
+
+        assert _wait_for("a step's progress in the run's logs", progress, procs, 60)
+    finally:
+        for proc, _ in reversed(procs.values()):
+            _stop(proc)
