@@ -556,6 +556,10 @@ def test_read_only_commands_import_neither_torch_pandas_prefect_nor_metaworld(tm
         ["verify", child],
         ["catalogue", "verify"],
         ["sql", "--help"],
+        ["runs"],
+        ["runs", "--format", "json", "--arm", "sft"],
+        ["export", str(tmp_path / "export")],
+        ["lineage", child, "--kinds", "checkpoint", "--format", "mermaid"],
     ]
     env = {**os.environ, "CAPVECTOR_HOME": str(home)}
     proc = subprocess.run(
