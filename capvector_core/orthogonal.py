@@ -1,4 +1,9 @@
-"""The orthogonal regularizer of CapVector (`shared/reference/papers.md` §1.4): keep downstream updates off γ.
+"""The orthogonal regularizer of CapVector: keep downstream updates off γ.
+
+Song et al. (2026), the CapVector paper, §1.4 ("orthogonal loss"): a capability vector γ is the
+parameter difference between a model trained with an auxiliary objective and one trained with plain
+SFT; when the merged model θ_meta is fine-tuned downstream, the update Δ' = θ − θ_meta is penalised
+for overlapping γ entry by entry, so downstream training does not undo the capability γ carries:
 
     L = λ · Σ_p Σ_ij |γ_ij · Δ'_ij|,    λ = 1e-4 by default (the paper's best).
 
@@ -6,8 +11,15 @@
 (already weighted), which is what the trainer's `extra_losses` hook expects; any training loop can add it
 to its loss. γ (and θ_meta) are stored as buffers on the parameters' device and dtype; parameters
 outside the include/exclude filter (`module_patterns` syntax, over γ's tensor names), without a γ tensor,
-or frozen are skipped; the work is one fused expression per parameter tensor (no Python loop over
-elements).
+or frozen are skipped.
+
+Cost: in dense mode the loss is one autograd node over all regularized tensors (`_DenseL1`:
+`torch._foreach_*` ops forward, and the gradient written out, λ·γ·sign(γ ⊙ Δ'), in one pass backward)
+instead of a sub/mul/norm chain per tensor; tensors whose γ is zero everywhere are left out of the arithmetic (their
+term is 0, their gradient an all-zero tensor, as before). Gradients are the per-tensor expression's bit
+for bit on float32, and so is the value unless a zero-γ tensor was left out of the final sum (then
+equal up to that sum's rounding order); tests/test_orthogonal.py checks both. The adapter modes keep
+one expression per layer (ΔW is built per layer by peft).
 
 Modes:
 - `dense` (full fine-tuning): Δ' = θ − θ_meta per parameter tensor.
@@ -36,6 +48,7 @@ from typing import Literal
 
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from capvector_core import lora, lora_sp, module_patterns
 from capvector_core.safetensors_io import Checkpoint
@@ -66,6 +79,47 @@ def _a_matrices(layer: nn.Module) -> list[torch.Tensor]:
     if isinstance(layer, lora_sp.LoraSPLinear):
         return [layer.lora_A.weight]
     return [layer.lora_A[a].weight for a in lora.plain_adapters(layer)]
+
+
+class _DenseL1(torch.autograd.Function):
+    """λ·Σ_p ‖γ_p ⊙ (θ_p − m_p)‖₁ over lists of tensors, as one autograd node.
+
+    The same arithmetic as the per-tensor expression `λ·stack([vector_norm((θ−m)·γ, 1)]).sum()`, in the
+    same order: forward `(θ − m)·γ` and one L1 norm per tensor (`torch._foreach_*`), backward the
+    gradient the per-tensor graph produces, sign((θ − m)·γ)·γ·(λ·upstream), one pass over the saved
+    products instead of three autograd nodes per tensor. `zero` lists the indices of parameters whose
+    γ is zero everywhere: no arithmetic, a 0 term, an all-zero gradient (what the per-tensor graph gives).
+    """
+
+    @staticmethod
+    def forward(ctx, weight: float, gammas: list, metas: list, zero: tuple, *params: torch.Tensor):
+        zeros = set(zero)
+        live = [p for i, p in enumerate(params) if i not in zeros]
+        prods = torch._foreach_sub(live, metas)
+        torch._foreach_mul_(prods, gammas)
+        norms = torch._foreach_norm(prods, 1, dtype=torch.float32)
+        ctx.save_for_backward(*prods)
+        ctx.gammas, ctx.weight = gammas, weight
+        ctx.zeros = {i: (params[i].shape, params[i].dtype, params[i].device) for i in zeros}
+        total = torch.stack(norms).sum() if norms else params[0].new_zeros((), dtype=torch.float32)
+        return total * weight
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: torch.Tensor):
+        grads = torch._foreach_sign(ctx.saved_tensors)
+        torch._foreach_mul_(grads, ctx.gammas)
+        torch._foreach_mul_(grads, grad * ctx.weight)
+        live = iter(grads)
+        out = []
+        for i, needed in enumerate(ctx.needs_input_grad[4:]):
+            if i in ctx.zeros:
+                shape, dtype, device = ctx.zeros[i]
+                g = torch.zeros(shape, dtype=dtype, device=device) if needed else None
+            else:
+                g = next(live)
+            out.append(g if needed else None)
+        return (None, None, None, None, *out)
 
 
 class OrthogonalRegularizer(nn.Module):
@@ -127,6 +181,8 @@ class OrthogonalRegularizer(nn.Module):
                     f"meta_{i}", m.detach().to(ref.device, ref.dtype).clone(), persistent=False
                 )
         self._bound: tuple[int, list] | None = None
+        # tensors whose γ is zero everywhere: term 0 and gradient 0, nothing to compute (dense mode)
+        self._zero = tuple(i for i in range(len(self.names)) if not bool(getattr(self, f"gamma_{i}").any()))
 
     def _targets(self, model: nn.Module) -> list:
         """What the loss reads from `model` (parameters or adapter modules), looked up once per model."""
@@ -155,12 +211,15 @@ class OrthogonalRegularizer(nn.Module):
 
     def forward(self, model: nn.Module) -> torch.Tensor:
         targets = self._targets(model)
+        if self.mode == "dense":
+            live = [i for i in range(len(self.names)) if i not in self._zero]
+            gammas = [getattr(self, f"gamma_{i}") for i in live]
+            metas = [getattr(self, f"meta_{i}") for i in live]
+            return _DenseL1.apply(self.weight, gammas, metas, self._zero, *targets)
         terms = []
         for i, t in enumerate(targets):
             g = getattr(self, f"gamma_{i}")
-            if self.mode == "dense":
-                d = torch.sub(t, getattr(self, f"meta_{i}")).mul_(g)
-            elif self.mode == "lora_exact":
+            if self.mode == "lora_exact":
                 d = _delta(t) * g
             else:
                 d = g @ torch.cat(_a_matrices(t)).T

@@ -175,3 +175,63 @@ def test_dora_refused():
     peft.inject_adapter_in_model(peft.LoraConfig(target_modules=["0"], r=2, use_dora=True), model)
     with pytest.raises(ValueError, match="DoRA"):
         OrthogonalRegularizer(model, gamma, mode="lora_exact")
+
+
+def test_dense_fused_equals_per_tensor_reference():
+    """The one-node dense loss (foreach forward, hand-written backward) vs the per-tensor autograd graph:
+    same value and gradients, bit for bit, with a zero-γ tensor, a frozen one and an SFT-like loss beside."""
+    torch.manual_seed(1)
+    model = nn.Sequential(nn.Embedding(10, 6), nn.Linear(6, 12), nn.LayerNorm(12), nn.Linear(12, 3))
+    meta = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    gamma = {k: 1e-3 * torch.randn_like(v) for k, v in meta.items()}
+    gamma["2.weight"].zero_()  # γ zero everywhere: no arithmetic, a zero gradient all the same
+    gamma["1.bias"][:5] = 0.0
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(1e-2 * torch.randn_like(p))
+        model[1].bias[:3] = meta["1.bias"][:3]  # Δ exactly 0: sign 0
+    model[3].bias.requires_grad_(False)
+    reg = OrthogonalRegularizer(model, gamma, meta, weight=0.3)
+    params = dict(model.named_parameters())
+    assert reg.names == [n for n in params if n != "3.bias"]
+
+    def grads(loss_fn):
+        for p in model.parameters():
+            p.grad = None
+        x = torch.tensor([[1, 2, 3], [4, 5, 9]])
+        task = model(x).square().mean()  # an SFT-like loss: the gradients add up on the same tensors
+        loss = loss_fn()
+        (task + loss).backward()
+        return loss.detach(), {n: None if p.grad is None else p.grad.clone() for n, p in params.items()}
+
+    def reference():
+        terms = [
+            torch.linalg.vector_norm(torch.sub(params[n], meta[n]).mul_(gamma[n]), 1, dtype=torch.float32)
+            for n in reg.names
+        ]
+        return torch.stack(terms).sum() * 0.3
+
+    got_loss, got = grads(lambda: reg(model))
+    want_loss, want = grads(reference)
+    torch.testing.assert_close(got_loss, want_loss, rtol=1e-6, atol=0)  # the sum may skip γ=0's zero term
+    assert set(got) == set(want) and got["3.bias"] is None and want["3.bias"] is None
+    for n in reg.names:
+        assert torch.equal(got[n], want[n]), n
+    # the regularizer alone: the zero-γ tensor still gets an all-zero gradient (not None), as before
+    for p in model.parameters():
+        p.grad = None
+    reg(model).backward()
+    assert torch.equal(params["2.weight"].grad, torch.zeros_like(params["2.weight"]))
+    # without a zero-γ tensor the value is bit for bit the per-tensor one
+    gamma["2.weight"].normal_()
+    reg = OrthogonalRegularizer(model, gamma, meta, weight=0.3)
+    assert torch.equal(reg(model).detach(), reference().detach())
+    with torch.no_grad():  # evaluation only: no graph, same value
+        assert torch.equal(reg(model), reference())
+    # a λ changed after construction (tasks/training.py scales it) is the one used, forward and backward
+    reg.weight = 0.05
+    for p in model.parameters():
+        p.grad = None
+    reg(model).backward()
+    hand = 0.05 * gamma["0.weight"].abs() * torch.sign(params["0.weight"].detach() - meta["0.weight"])
+    torch.testing.assert_close(params["0.weight"].grad, hand)
