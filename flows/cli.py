@@ -19,6 +19,7 @@ import typer
 
 from artifacts.errors import ArtifactError
 from flows.catalogue_commands import catalogue_app
+from flows.config_command import config_app
 from flows.home import resolve_home, set_root_home
 from flows.lineage_views import as_mermaid, as_tree, keep_kinds
 from flows.table_commands import export, runs
@@ -32,6 +33,7 @@ vector_app = typer.Typer(
 app.add_typer(artifacts_app, name="artifacts")
 app.add_typer(vector_app, name="vector")
 app.add_typer(catalogue_app, name="catalogue")
+app.add_typer(config_app, name="config")
 app.command("verify")(verify)
 app.command("runs")(runs)
 app.command("export")(export)
@@ -65,6 +67,35 @@ JsonOption = Annotated[bool, typer.Option("--json", help="print machine-readable
 SetOption = Annotated[list[str] | None, typer.Option("--set", help="override a config key: a.b=value")]
 DryRunOption = Annotated[
     bool, typer.Option("--dry-run", help="print the plan's steps, cached or to run, and run nothing")
+]
+# Where the steps run (flows.runners): the same five options on run, study, sweep, evaluate, reevaluate.
+_RUNNER_PANEL = "Where steps run"
+RunnerOption = Annotated[
+    str | None,
+    typer.Option(
+        "--runner",
+        help="process (a pool of --workers, default) | dask | ray; evaluate, reevaluate: thread (default)",
+        rich_help_panel=_RUNNER_PANEL,
+    ),
+]
+AddressOption = Annotated[
+    str | None,
+    typer.Option(
+        help="dask: tcp://host:port of a running scheduler; ray: its address", rich_help_panel=_RUNNER_PANEL
+    ),
+]
+WorkersOption = Annotated[
+    int, typer.Option(help="worker processes of a pool or a local cluster", rich_help_panel=_RUNNER_PANEL)
+]
+ClusterClassOption = Annotated[
+    str | None,
+    typer.Option(
+        help="dask: a cluster class to start, e.g. dask_jobqueue.SLURMCluster", rich_help_panel=_RUNNER_PANEL
+    ),
+]
+ClusterKwargsOption = Annotated[
+    str | None,
+    typer.Option(help="dask: that cluster's keyword arguments, JSON", rich_help_panel=_RUNNER_PANEL),
 ]
 
 
@@ -163,21 +194,27 @@ def _from_cache(command: str, home: str, plan, total: int, label: str, dry_run: 
     return result
 
 
-def _runner(runner: str, workers: int):
-    if runner == "thread":
-        return None
-    if runner == "dask":
-        from prefect_dask import DaskTaskRunner
+def _runner(
+    runner: str | None,
+    address: str | None,
+    workers: int,
+    cluster_class: str | None,
+    cluster_kwargs: str | None,
+    default: str = "process",
+):
+    """The runner options, checked before anything runs (a bad one exits 2 naming the problem)."""
+    from flows.runners import runner_config
 
-        return DaskTaskRunner(
-            cluster_kwargs={
-                "n_workers": workers,
-                "threads_per_worker": 1,
-                "processes": True,
-                "dashboard_address": None,
-            }
-        )
-    raise typer.BadParameter(f"unknown runner {runner!r}; use 'thread' or 'dask'")
+    kind = runner or default
+    if kind == "thread" and default != "thread":
+        raise ValueError("--runner thread is for evaluate and reevaluate: training steps need processes")
+    return runner_config(kind, address, workers, cluster_class, cluster_kwargs)
+
+
+def _on_runner(flow_fn: Any, config: Any) -> Any:
+    from flows.runners import build_runner
+
+    return flow_fn.with_options(task_runner=build_runner(config))
 
 
 # ---------------------------------------------------------------------------- flows
@@ -188,11 +225,17 @@ def run(
     home: HomeOption = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Run the whole recipe (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> eval -> report."""
     from flows.config import load_config
     from flows.pipeline import pipeline, pipeline_steps, run_pipeline
 
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
     config = load_config(preset, overrides)
     home = resolve_home(home)
     command = f"run --preset {preset}"
@@ -203,7 +246,7 @@ def run(
 
         _preflight(command, home)
         with run_tags("run", config.name):
-            ids = pipeline(config.model_dump(mode="json"), home)
+            ids = _on_runner(pipeline, runner_config)(config.model_dump(mode="json"), home)
     if as_json:
         _print_json(ids)
         return
@@ -225,8 +268,11 @@ def evaluate(
     obs_mode: str = "state",
     camera: Annotated[str, typer.Option(help="pixels: camera (another tests generalization)")] = "corner2",
     image_size: Annotated[int, typer.Option(help="image side for pixels policies")] = 64,
-    runner: Annotated[str, typer.Option(help="thread | dask")] = "thread",
-    workers: int = 2,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
 ) -> None:
@@ -234,6 +280,7 @@ def evaluate(
     from capvector_core.evaluation import EvalConfig
     from flows.evaluation_flows import evaluate_flow
 
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs, default="thread")
     _preflight("evaluate", home)
     config = EvalConfig(
         tasks=[t.strip() for t in tasks.split(",") if t.strip()],
@@ -244,10 +291,7 @@ def evaluate(
         camera=camera,
         image_size=image_size,
     )
-    flow_fn = evaluate_flow
-    task_runner = _runner(runner, workers)
-    if task_runner is not None:
-        flow_fn = evaluate_flow.with_options(task_runner=task_runner)
+    flow_fn = _on_runner(evaluate_flow, runner_config)
     from flows.runs import run_tags
 
     with run_tags("evaluate"):
@@ -272,15 +316,21 @@ def reevaluate(
     ] = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Re-run the evaluations of the selected checkpoints under the installed library versions."""
     from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
 
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs, default="thread")
     _preflight("reevaluate", home)
     from flows.runs import run_tags
 
     with run_tags("reevaluate"):
-        changes = reevaluate_flow(resolve_home(home), query or DEFAULT_SELECTION)
+        changes = _on_runner(reevaluate_flow, runner_config)(resolve_home(home), query or DEFAULT_SELECTION)
     if as_json:
         _print_json(changes)
     else:
@@ -301,6 +351,11 @@ def study(
     ] = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
     from functools import partial
@@ -309,6 +364,7 @@ def study(
     from flows.study_config import load_study
     from flows.study_figures import default_report_path, write_study_report
 
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
     config = load_study(preset, overrides)
     command, label = f"study --preset {preset}", f"study {config.name}"
     plan = partial(plan_study, config)
@@ -318,7 +374,7 @@ def study(
 
         _preflight(command, home)
         with run_tags("study", config.name):
-            result = study_flow(config.model_dump(mode="json"), resolve_home(home))
+            result = _on_runner(study_flow, runner_config)(config.model_dump(mode="json"), resolve_home(home))
     ws = _workspace(home)
     written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
     if as_json:
@@ -335,17 +391,23 @@ def sweep(
     overrides: SetOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Grid over α and λ for the CapVector arm, picked on validation seeds (never the test seeds)."""
     from flows.config import load_config
     from flows.sweep import sweep_flow, sweep_markdown
 
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
     config = load_config(preset, overrides)
     _preflight(f"sweep --preset {preset}", home)
     from flows.runs import run_tags
 
     with run_tags("sweep", config.name):
-        result = sweep_flow(config.model_dump(mode="json"), resolve_home(home))
+        result = _on_runner(sweep_flow, runner_config)(config.model_dump(mode="json"), resolve_home(home))
     if as_json:
         _print_json(result)
     else:
