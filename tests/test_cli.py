@@ -585,3 +585,23 @@ def test_sql_prints_whole_values_aligned_without_pandas(tmp_path):
     home = tmp_path / "home"
     out = CliRunner().invoke(app, ["--home", str(home), "sql", "SELECT 42 AS answer, 'x' AS s"])
     assert out.exit_code == 0 and out.stdout.splitlines() == ["answer  s", "    42  x"], out.stdout
+
+
+def test_a_fully_cached_run_is_answered_before_any_flow_and_dry_run_shows_the_plan(smoke_home):
+    """The cache answers the whole smoke plan in the CLI's process: same ids, no Prefect flow run
+    (the runs table gains no row), and --dry-run lists each step, or the first one a change makes run."""
+    home, ids = smoke_home
+    api = ArtifactsAPI(str(home))
+    runs_before = api.query_rows("SELECT count(*) FROM runs")[1][0][0]
+    again = run_cli("run", "--preset", "smoke", "--json", home=home)
+    assert json.loads(again.stdout) == ids
+    log = max((home / "logs").glob("run-smoke-*.log"), key=lambda p: p.stat().st_mtime).read_text()
+    assert "every one cached: answered without a flow run" in log
+    assert ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM runs")[1][0][0] == runs_before
+    dry = run_cli("run", "--preset", "smoke", "--dry-run", home=home).stdout
+    assert dry.count("cached  ") == 15 and "all 15 steps cached" in dry
+    artifacts_before = ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM artifacts")[1][0][0]
+    changed = run_cli("run", "--preset", "smoke", "--set", "evaluation.horizon=31", "--dry-run", home=home)
+    pattern = r"to run  evaluate \S+, then what depends on it \(\d+ of 15 steps to run\)"
+    assert re.search(pattern, changed.stdout)
+    assert ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM artifacts")[1][0][0] == artifacts_before
