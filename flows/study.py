@@ -332,7 +332,13 @@ def _run_study(study: _Study) -> dict[str, Any]:
             )
             for seed in cfg.seeds:
                 runs[arm, d, seed] = submit_arm(
-                    study.steps, cfg, stage, arm, seed, step_config=cfg.study_downstream(arm, seed)
+                    study.steps,
+                    cfg,
+                    stage,
+                    arm,
+                    seed,
+                    label=f"downstream {arm} draw {d} seed {seed}",  # names are unique in a study
+                    step_config=cfg.study_downstream(arm, seed),
                 )
     study.test_runs({k: v for k, v in runs.items() if k[0] in GATE_ARMS})
     _held_out_losses(study, draws, data["heldout"])
@@ -398,7 +404,14 @@ def _run_study(study: _Study) -> dict[str, Any]:
             for seed in cfg.seeds:
                 step = cfg.study_downstream(arm, seed, lambda_scale=scale)
                 runs[arm, d, seed] = submit_arm(
-                    study.steps, cfg, stage, arm, seed, selection=grid_selection, step_config=step
+                    study.steps,
+                    cfg,
+                    stage,
+                    arm,
+                    seed,
+                    label=f"downstream {arm} draw {d} seed {seed}",
+                    selection=grid_selection,
+                    step_config=step,
                 )
     study.test_runs({k: v for k, v in runs.items() if k[0] in rest})
     report = study.analyse("final", _design(cfg, chosen_values))

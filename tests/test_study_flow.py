@@ -75,6 +75,8 @@ def test_every_run_is_tested_on_the_same_goals_at_every_budget(study_home):
     assert len({ws.api.get(t).config["protocol"]["seeds"].__repr__() for t in tests}) == 1
     for arm, points in report.curves.items():
         assert [p.budget for p in points] == [0, *config.curve_budgets], arm
+    names = [ws.api.get(c).name for ids_ in report.final_checkpoints.values() for c in ids_]
+    assert len(set(names)) == len(names)  # a checkpoint's name carries its draw
     kept = ws.api.get(report.final_checkpoints["capvector"][0]).config
     assert set(kept["snapshots"]) == {str(b) for b in config.curve_budgets[:-1]}
     summary = kept["summary"]
