@@ -13,6 +13,7 @@ from typing import Any
 
 from prefect.futures import PrefectFuture
 
+from flows.runners import placement
 from tasks.progress import emit
 
 
@@ -40,7 +41,8 @@ class StepRunner:
                 artifact_id = state.result()
                 self._report(step, "cached")
                 return artifact_id
-        future = step_task.submit(self.home, step, inputs, config)
+        with placement(config):  # what the step asks of the engine: a GPU worker for a cuda step
+            future = step_task.submit(self.home, step, inputs, config)
         future.add_done_callback(lambda f: self._report(step, _outcome(f)))
         return future
 
