@@ -55,7 +55,7 @@ class EvalConfig(BaseModel):
     image_size: int = Field(64, ge=16, le=256)
     execute_steps: int = Field(1, ge=1)
     batch_size: int = Field(64, ge=1)  # envs stepped together (memory: one MjData each, one model per task)
-    record_video: bool = False
+    record_video: int = Field(0, ge=0, description="episodes per task recorded as GIFs (the first goals)")
 
     @field_validator("tasks")
     @classmethod
@@ -107,7 +107,7 @@ class EvalResult(BaseModel):
     env_steps: int
     policy_calls: int
     wall_time_s: float
-    videos: dict[str, str] = {}  # task -> path of its first episode's video
+    videos: dict[str, str] = {}  # "<task> seed <goal seed>" -> path of that episode's GIF
 
     def to_json(self) -> str:
         return self.model_dump_json(indent=1)
@@ -283,7 +283,7 @@ def evaluate(
 ) -> EvalResult:
     """Roll out `action_fn` on every task x seed of `config`; videos need `video_dir`."""
     if config.record_video and video_dir is None:
-        raise ValueError("record_video=True needs a video_dir to write the videos into")
+        raise ValueError("record_video needs a video_dir to write the videos into")
     episodes = [(task, seed) for task in config.tasks for seed in config.seeds]
     records: list[EpisodeRecord] = []
     videos: dict[str, str] = {}
@@ -300,7 +300,7 @@ def evaluate(
         for first in range(0, len(episodes), config.batch_size):
             batch = episodes[first : first + config.batch_size]
             envs = [pool.take(task) for task, _ in batch]
-            record = [config.record_video and seed == config.seed_base for _, seed in batch]
+            record = [seed < config.seed_base + config.record_video for _, seed in batch]
             rollout = _Rollout(envs, [seed for _, seed in batch], record, config.horizon, on_done)
             rollout.run(action_fn, config.execute_steps)
             pool.give_back(envs)
@@ -319,7 +319,7 @@ def _write_videos(rollout: _Rollout, video_dir: str | Path | None) -> dict[str, 
     videos = {}
     for i, frames in rollout.frames.items():
         task, seed = rollout.envs[i].task, rollout.seeds[i]
-        videos[task] = str(write_gif(frames, Path(video_dir) / f"{task}-seed{seed}.gif"))
+        videos[f"{task} seed {seed}"] = str(write_gif(frames, Path(video_dir) / f"{task}-seed{seed}.gif"))
     return videos
 
 

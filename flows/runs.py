@@ -10,6 +10,7 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.runtime import flow_run
 
 from artifacts.records import RunRecord, utcnow
+from tasks.prefect_task import artifact_key
 from tasks.workspace import Workspace
 
 
@@ -47,10 +48,4 @@ def run_tags(command: str, preset: str | None = None) -> Any:
 
 def publish_markdown(key: str, markdown: str, description: str) -> None:
     """A Markdown artifact in the Prefect UI (a no-op cost on the embedded API)."""
-    create_markdown_artifact(markdown=markdown, key=_key(key), description=description)
-
-
-def _key(text: str) -> str:
-    """Prefect artifact keys: lowercase letters, numbers and dashes only."""
-    cleaned = "".join(c if c.isalnum() else "-" for c in text.lower())
-    return "-".join(part for part in cleaned.split("-") if part)[:100] or "capvector"
+    create_markdown_artifact(markdown=markdown, key=artifact_key(key), description=description)

@@ -14,6 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from tasks.evaluation import videos_of  # noqa: E402
 from tasks.study_analysis import StudyReport  # noqa: E402
 from tasks.study_report import NAMES, load_study_report, study_markdown  # noqa: E402
 from tasks.study_statistics import ENDPOINT  # noqa: E402
@@ -122,6 +123,18 @@ def write_study_report(workspace: Workspace, study_id: str, out: Path) -> Path:
         "Per task": plot_per_task(report, out.parent / f"{out.stem}_tasks.png"),
     }
     figures = {title: p.name for title, p in drawn.items() if p is not None}
-    markdown = study_markdown(workspace, report, figures)
+    markdown = study_markdown(workspace, report, figures) + _videos_section(workspace, study_id)
     out.write_text(markdown + f"\nStudy artifact: `{study_id}` (`capvector lineage {study_id[:12]}`).\n")
     return out
+
+
+def _videos_section(workspace: Workspace, study_id: str) -> str:
+    """Links to the rollout videos of the study's test evaluations (`evaluation.record_video`)."""
+    tests = [p.id for p in workspace.api.get(study_id).parents if p.role == "test"]
+    found = videos_of(workspace, tests)
+    if not found:
+        return ""
+    lines = ["", "## Rollout videos", ""]
+    for videos in found.values():
+        lines += [f"- [{name}]({path})" for name, path in videos]
+    return "\n".join(lines) + "\n"

@@ -4,15 +4,18 @@ from __future__ import annotations
 
 from typing import Any
 
-from prefect.artifacts import create_table_artifact
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
 
 from artifacts.scores import read_scores
 from capvector_core.evaluation import EvalConfig, EvalResult, evaluate
 from tasks.caching import cached_step
-from tasks.prefect_task import pipeline_task
+from tasks.prefect_task import artifact_key, pipeline_task
 from tasks.progress import progress_printer
 from tasks.trained_policy import load_trained_policy
 from tasks.workspace import Workspace, provenance
+
+VIDEO_KIND = "video"
+"""A rollout GIF, registered with its evaluation as parent (role `of`)."""
 
 
 def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, Any]) -> dict[str, Any]:
@@ -46,7 +49,59 @@ def evaluate_checkpoint(
     """Run the rollouts now (no cache) and register the evaluation; returns its artifact id."""
     eval_config = EvalConfig.model_validate(config)
     policy, form = load_trained_policy(workspace, checkpoint_id, device="auto")
-    result = evaluate(policy.predict_action_chunk, eval_config, progress=progress_printer(step, "episodes"))
+    with workspace.scratch() as video_dir:
+        result = evaluate(
+            policy.predict_action_chunk, eval_config, progress_printer(step, "episodes"), video_dir=video_dir
+        )
+        record = _register(workspace, step, checkpoint_id, eval_config, result, form, cache_key)
+        videos = {
+            name: workspace.api.register_file(
+                path, VIDEO_KIND, f"{step}: {name}", parents=[(record.id, "of")]
+            )
+            for name, path in sorted(result.videos.items())
+        }
+    (scores,) = read_scores(workspace.api, evaluations=[record.id])  # as every other reader sees them
+    create_table_artifact(  # keyed by the step, so the UI shows an arm's (draw's, seed's) history
+        table=[{"task": t, "success_rate": r} for t, r in sorted(scores.success_rates.items())],
+        key=artifact_key(f"evaluation {step}"),
+        description=f"{step}: evaluation {record.id[:12]} of checkpoint {checkpoint_id[:12]}, protocol "
+        f"{result.fingerprint[:12]}",
+    )
+    if videos:
+        links = "\n".join(
+            f"- {name}: `{v.id[:12]}` ({workspace.api.path(v.id)})" for name, v in videos.items()
+        )
+        create_markdown_artifact(
+            markdown=f"Rollout videos of {step}:\n\n{links}\n", key=artifact_key(f"videos {step}")
+        )
+    return record.id
+
+
+def videos_of(workspace: Workspace, evaluation_ids: list[str]) -> dict[str, list[tuple[str, str]]]:
+    """Evaluation id -> [(video name, path)] of the rollout videos registered with it."""
+    if not evaluation_ids:
+        return {}
+    marks = ", ".join("?" for _ in evaluation_ids)
+    _, rows = workspace.api.query_rows(
+        f"SELECT e.parent, a.id, a.name FROM edges e JOIN artifacts a ON a.id = e.child "
+        f"WHERE a.kind = '{VIDEO_KIND}' AND e.parent IN ({marks}) ORDER BY a.name",
+        list(evaluation_ids),
+    )
+    found: dict[str, list[tuple[str, str]]] = {}
+    for parent, video, name in rows:
+        found.setdefault(parent, []).append((name, str(workspace.api.path(video))))
+    return found
+
+
+def _register(
+    workspace: Workspace,
+    step: str,
+    checkpoint_id: str,
+    eval_config: EvalConfig,
+    result: EvalResult,
+    form: Any,
+    cache_key: str | None,
+) -> Any:
     meta = provenance()
     record = workspace.api.register_evaluation(
         evaluation_doc(workspace.api.get(checkpoint_id).id, result, meta["library_versions"]),
@@ -61,13 +116,7 @@ def evaluate_checkpoint(
         },
         **meta,
     )
-    (scores,) = read_scores(workspace.api, evaluations=[record.id])  # as every other reader sees them
-    create_table_artifact(
-        table=[{"task": t, "success_rate": r} for t, r in sorted(scores.success_rates.items())],
-        key=f"evaluation-{record.id[:12]}",
-        description=f"{step}: checkpoint {checkpoint_id[:12]}, protocol {result.fingerprint[:12]}",
-    )
-    return record.id
+    return record
 
 
 def run_evaluate(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:

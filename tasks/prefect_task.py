@@ -49,6 +49,13 @@ ASCII_NAMES = str.maketrans({"θ": "theta", "γ": "gamma", "α": "alpha", "λ": 
 """The Prefect UI's run graph drops these letters ("pretrain _pt"): task-run names spell them out."""
 
 
+def artifact_key(text: str) -> str:
+    """A Prefect artifact key (lowercase ASCII letters, digits and dashes) from a step or report name."""
+    spelled = text.lower().translate(ASCII_NAMES)
+    cleaned = "".join(c if c.isascii() and c.isalnum() else "-" for c in spelled)
+    return "-".join(part for part in cleaned.split("-") if part)[:100] or "capvector"
+
+
 def _task_run_name() -> str:
     from prefect.runtime import task_run
 

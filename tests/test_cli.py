@@ -605,3 +605,21 @@ def test_a_fully_cached_run_is_answered_before_any_flow_and_dry_run_shows_the_pl
     pattern = r"to run  evaluate \S+, then what depends on it \(\d+ of 15 steps to run\)"
     assert re.search(pattern, changed.stdout)
     assert ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM artifacts")[1][0][0] == artifacts_before
+
+
+def test_evaluate_with_video_registers_gifs_as_artifacts_of_the_evaluation(smoke_home):
+    home, ids = smoke_home
+    checkpoint = ids["checkpoints"]["sft/seed0"]
+    args = ("evaluate", checkpoint, "--tasks", "reach-v3", "--episodes", "2", "--horizon", "15", "--json")
+    with_video = json.loads(run_cli(*args, "--video", "1", home=home).stdout)
+    without = json.loads(run_cli(*args, home=home).stdout)
+    evaluation = with_video[0]["evaluation"]
+    assert evaluation == without[0]["evaluation"]  # a video is not part of the protocol or the scores
+    api = ArtifactsAPI(str(home))
+    _, rows = api.query_rows(
+        "SELECT a.id, a.name, e.role FROM edges e JOIN artifacts a ON a.id = e.child "
+        "WHERE e.parent = ? AND a.kind = 'video'",
+        [evaluation],
+    )
+    assert len(rows) == 1 and rows[0][2] == "of" and "reach-v3 seed" in rows[0][1]
+    assert api.path(rows[0][0]).read_bytes()[:6] == b"GIF89a"

@@ -176,7 +176,7 @@ def test_pixels_evaluation_with_video(tmp_path):
 
     result = evaluate(expert_checking_images, config, video_dir=tmp_path)
     assert seen[0] == (2, 32, 32, 3)
-    assert list(result.videos) == ["reach-v3"]
+    assert list(result.videos) == [f"reach-v3 seed {EVAL_SEED_BASE}"]  # record_video=True: one per task
     assert (tmp_path / f"reach-v3-seed{EVAL_SEED_BASE}.gif").stat().st_size > 0
     with pytest.raises(ValueError, match="needs a video_dir"):
         evaluate(expert_action_fn, config)
