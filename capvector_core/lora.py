@@ -68,12 +68,22 @@ class LoraConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # alpha, weights: finite numbers
 
-    target_modules: list[str] = Field(min_length=1)  # module_patterns syntax
-    r: int = Field(8, ge=1)
-    alpha: float = 16.0
-    dropout: float = Field(0.0, ge=0.0, lt=1.0)
-    init: Literal["kaiming", "gaussian"] = "kaiming"  # how A starts (peft's default / `gaussian`)
-    use_rslora: bool = False  # scaling alpha/√r instead of alpha/r (peft's rsLoRA)
+    target_modules: list[str] = Field(
+        min_length=1,
+        description="nn.Linear modules adapted, by name (module_patterns syntax: `attn.*_proj`, `re:...`); "
+        "a pattern matching no linear layer is an error",
+    )
+    r: int = Field(8, ge=1, description="rank of each update B·A; larger: more capacity and parameters")
+    alpha: float = Field(16.0, description="update scale: ΔW = (alpha / r)·B·A (alpha/√r with use_rslora)")
+    dropout: float = Field(
+        0.0, ge=0.0, lt=1.0, description="dropout on the adapter's input, training only (0-1)"
+    )
+    init: Literal["kaiming", "gaussian"] = Field(
+        "kaiming", description="how A starts: `kaiming` (peft's default) or `gaussian`; B starts at zero"
+    )
+    use_rslora: bool = Field(
+        False, description="scale by alpha/√r instead of alpha/r (peft's rsLoRA), steadier across ranks"
+    )
 
     @property
     def scaling(self) -> float:

@@ -64,16 +64,40 @@ class LoraSPConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # alpha, weights: finite numbers
 
-    target_modules: list[str] = Field(min_length=1)
-    bank_size: int = Field(128, ge=1)
-    alpha: float = 256.0
-    eta: float = Field(0.9, gt=0.0, le=1.0)
-    dropout: float = Field(0.0, ge=0.0, lt=1.0)
-    init: Literal["kaiming", "gaussian"] = "kaiming"
-    activation: Literal["softplus", "relu"] = "softplus"
-    spectral_weight: float = 1e-2
-    router_weight: float = 1e-3
-    rank_momentum: float = Field(0.01, gt=0.0, le=1.0)
+    target_modules: list[str] = Field(
+        min_length=1,
+        description="nn.Linear modules adapted, by name (module_patterns syntax, as LoRA's target_modules)",
+    )
+    bank_size: int = Field(
+        128, ge=1, description="vectors in each layer's bank: the largest rank an input can use"
+    )
+    alpha: float = Field(256.0, description="update scale: ΔW(x) = (alpha / bank_size)·U·diag(σ(x))·V")
+    eta: float = Field(
+        0.9,
+        gt=0.0,
+        le=1.0,
+        description="energy kept per input (0-1]: the fewest scores holding this share of Σσ² stay active; "
+        "1: the whole bank, lower: smaller ranks",
+    )
+    dropout: float = Field(
+        0.0, ge=0.0, lt=1.0, description="dropout on the adapter's input, training only (0-1)"
+    )
+    init: Literal["kaiming", "gaussian"] = Field(
+        "kaiming", description="how V (lora_A) starts: `kaiming` or `gaussian`; U (lora_B) starts at zero"
+    )
+    activation: Literal["softplus", "relu"] = Field(
+        "softplus", description="router logits -> non-negative singular values σ(x)"
+    )
+    spectral_weight: float = Field(
+        1e-2, description="weight of the spectral loss 1 − E(k), which pushes energy into fewer vectors"
+    )
+    router_weight: float = Field(1e-3, description="weight of the router's load-balance + z-loss term")
+    rank_momentum: float = Field(
+        0.01,
+        gt=0.0,
+        le=1.0,
+        description="momentum (0-1] of the running mean of each layer's active rank (monitoring only)",
+    )
 
 
 def select_active(scores: torch.Tensor, eta: float) -> tuple[torch.Tensor, torch.Tensor]:

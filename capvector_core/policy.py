@@ -49,9 +49,17 @@ class PolicyConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN/Inf in any field: refused at load
 
-    type: str = DEFAULT_POLICY_TYPE
-    obs_mode: Literal["state", "pixels"] = "state"
-    image_size: int = Field(64, gt=0)
+    type: str = Field(
+        DEFAULT_POLICY_TYPE,
+        description="registered policy type (built in: l1_chunk, flow; plugins add more); it decides "
+        "which other fields exist",
+    )
+    obs_mode: Literal["state", "pixels"] = Field(
+        "state", description="the observation the policy reads: `state` (39 numbers) or `pixels` (an image)"
+    )
+    image_size: int = Field(
+        64, gt=0, description="side of the square input image in pixels (pixels mode only)"
+    )
 
     @classmethod
     def class_for(cls, data: Mapping[str, Any]) -> type[PolicyConfig]:

@@ -53,10 +53,21 @@ _RESUME_FREE = {"checkpoint_every", "log_every", "num_threads", "device", "keep_
 
 
 class AuxConfig(BaseModel):
+    """An auxiliary objective added to the action loss (capvector_core.aux_objectives)."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # a NaN/inf weight: refused here
-    name: str
+    name: str = Field(
+        description="registered objective: `spatial` (align obs tokens with 3D scene features), "
+        "`spatial_depth` (pixels: each vision token with its patch's 3D point) or `dynamics` (predict "
+        "the privileged state a few steps ahead)"
+    )
     weight: float = Field(0.5, ge=0.0, description="loss weight (Spatial Forcing's default is 0.5)")
-    params: dict[str, Any] = Field(default_factory=dict)
+    params: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the objective's own settings, checked by its Params model (e.g. dynamics: horizon, "
+        "layer, hidden_dim; spatial: layer, pooling, hidden_dim, feature_dim, fourier_scale, seed); "
+        "{}: its defaults",
+    )
 
     @field_validator("name")
     @classmethod
@@ -66,28 +77,64 @@ class AuxConfig(BaseModel):
 
 
 class TrainConfig(BaseModel):
+    """One training run: AdamW, linear warm-up then cosine decay, gradient clipping, exact resume."""
+
     # lr, weight_decay, min_lr_ratio, grad_clip: finite numbers (NaN or inf is refused, naming the field)
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    steps: int = Field(1000, gt=0)
-    batch_size: int = Field(64, gt=0)
-    lr: float = Field(3e-4, gt=0)
-    weight_decay: float = Field(0.01, ge=0)
-    warmup_steps: int = Field(100, ge=0)
-    min_lr_ratio: float = Field(0.1, ge=0, le=1)
-    grad_clip: float | None = Field(1.0, gt=0)
-    seed: int = 0
-    checkpoint_every: int = Field(500, gt=0)
-    # Budgets at which the policy is also kept as it is then (success-vs-steps curves, early endpoints).
-    snapshot_steps: list[int] = Field(default_factory=list)
-    keep_checkpoints: int = Field(2, gt=0)
-    log_every: int = Field(10, gt=0)
-    aux: AuxConfig | None = None
+    steps: int = Field(1000, gt=0, description="optimizer steps of the run (its final budget)")
+    batch_size: int = Field(
+        64, gt=0, description="samples per step, drawn from the demonstrations (at most the dataset's size)"
+    )
+    lr: float = Field(
+        3e-4, gt=0, description="peak learning rate (AdamW), reached after warmup_steps, then cosine decay"
+    )
+    weight_decay: float = Field(
+        0.01, ge=0, description="AdamW decoupled weight decay, on matrices only (not biases or norms)"
+    )
+    warmup_steps: int = Field(
+        100, ge=0, description="steps of linear warm-up to lr (must be < steps); 0: start at lr"
+    )
+    min_lr_ratio: float = Field(
+        0.1, ge=0, le=1, description="the cosine decay ends at lr × this (0-1; 1: constant after warm-up)"
+    )
+    grad_clip: float | None = Field(
+        1.0, gt=0, description="clip the global gradient L2 norm to this; null: no clipping"
+    )
+    seed: int = Field(
+        0,
+        description="seed of initialisation (from scratch, adapters), batch order and dropout; the pipeline "
+        "replaces it downstream by each of `seeds` (a study also in extraction, by its draws)",
+    )
+    checkpoint_every: int = Field(
+        500, gt=0, description="steps between resumable checkpoints; speed only, never the result"
+    )
+    snapshot_steps: list[int] = Field(
+        default_factory=list,
+        description="budgets (0 < step < steps) at which the policy is also kept as it is then "
+        "(success-vs-steps curves, early endpoints); a study sets them itself",
+    )
+    keep_checkpoints: int = Field(
+        2, gt=0, description="newest resumable checkpoints kept on disk; older ones are deleted"
+    )
+    log_every: int = Field(10, gt=0, description="steps per loss-curve row (mean loss terms, lr, grad norm)")
+    aux: AuxConfig | None = Field(
+        None,
+        description="auxiliary objective trained alongside the action loss; null: plain SFT. The pipeline "
+        "sets it in extraction and downstream (the top-level `aux` for θ_ao and the aux arm, null for the "
+        "others) and uses it as given for pretraining",
+    )
     fit_normalizer: bool | None = Field(
         None,
         description="set policy normalization stats from the data; None: only if the policy has none yet",
     )
-    device: str = "auto"
-    num_threads: int | None = Field(None, gt=0)
+    device: str = Field(
+        "auto",
+        description="torch device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N; bit-identical "
+        "resume needs the same device",
+    )
+    num_threads: int | None = Field(
+        None, gt=0, description="torch CPU threads of the run; null: torch's default; speed only"
+    )
 
     @model_validator(mode="after")
     def _warmup(self) -> TrainConfig:

@@ -65,9 +65,18 @@ class Splits(BaseModel):
     """Task splits: D_down's tasks appear in neither the pretraining nor the extraction set."""
 
     model_config = ConfigDict(extra="forbid")
-    pretrain: list[str]
-    extraction: list[str]
-    downstream: list[str]
+    pretrain: list[str] = Field(
+        description="Meta-World tasks (e.g. reach-v3) of D_pt, the pretraining demonstrations θ_pt is "
+        "trained on; more tasks: a broader base model"
+    )
+    extraction: list[str] = Field(
+        description="tasks of D_ext, on which θ_ft (SFT) and θ_ao (SFT + aux) are trained from θ_pt; "
+        "γ = θ_ao − θ_ft is extracted from them (may share tasks with pretrain)"
+    )
+    downstream: list[str] = Field(
+        description="tasks of D_down, the fine-tuning and evaluation tasks every arm is compared on; "
+        "must share no task with pretrain or extraction"
+    )
 
     @model_validator(mode="after")
     def _valid_and_disjoint(self) -> Splits:
@@ -81,15 +90,43 @@ class Splits(BaseModel):
 
 
 class DataSettings(BaseModel):
+    """The expert demonstrations (Meta-World's scripted experts) every split is recorded as."""
+
     model_config = ConfigDict(extra="forbid")
-    obs_mode: Literal["state", "pixels"] = "state"
-    camera: str = "corner2"
-    image_size: int = 64
-    horizon: int = Field(500, ge=1, le=500)
-    episodes_pretrain: int = Field(25, ge=1)
-    episodes_extraction: int = Field(10, ge=1)
-    episodes_downstream: int = Field(10, ge=1)
-    workers: int = Field(2, ge=1)
+    obs_mode: Literal["state", "pixels"] = Field(
+        "state",
+        description="what the policy observes: `state` (Meta-World's 39-number observation) or `pixels` "
+        "(a camera image); must equal policy.obs_mode",
+    )
+    camera: str = Field(
+        "corner2",
+        description="Meta-World camera the images are rendered from (pixels mode; topview, corner, "
+        "corner2, corner3, corner4, behindGripper, gripperPOV)",
+    )
+    image_size: int = Field(
+        64,
+        description="side of the square rendered images in pixels (pixels mode); must equal "
+        "policy.image_size; larger: more vision tokens, slower",
+    )
+    horizon: int = Field(
+        500,
+        ge=1,
+        le=500,
+        description="most environment steps per expert episode (1-500, Meta-World's limit); an episode "
+        "without success within it is discarded and another seed is tried",
+    )
+    episodes_pretrain: int = Field(
+        25, ge=1, description="successful expert episodes recorded per task of splits.pretrain"
+    )
+    episodes_extraction: int = Field(
+        10, ge=1, description="successful expert episodes per task of splits.extraction (θ_ft, θ_ao's data)"
+    )
+    episodes_downstream: int = Field(
+        10, ge=1, description="successful expert episodes per task of splits.downstream (the arms' data)"
+    )
+    workers: int = Field(
+        2, ge=1, description="processes recording demonstrations in parallel; speed only, never the data"
+    )
     obs_transform: ObsTransformConfig = Field(
         default_factory=ObsTransformConfig,
         description="fixed, seeded map of the state the policy sees (state mode): the policy applies it, "
@@ -99,52 +136,120 @@ class DataSettings(BaseModel):
 
 
 class EvalSettings(BaseModel):
+    """How checkpoints are tested: rollouts on D_down's tasks from goals no demonstration used."""
+
     model_config = ConfigDict(extra="forbid")
-    episodes_per_task: int = Field(20, ge=1)
-    validation_episodes_per_task: int = Field(10, ge=1)
-    horizon: int = Field(500, ge=1, le=500)
-    execute_steps: int = Field(1, ge=1)
-    batch_size: int = Field(64, ge=1)
-    # Out-of-distribution check (pixels only): the final checkpoints are also tested through this
-    # camera, which no demonstration was recorded with.
-    ood_camera: str | None = None
+    episodes_per_task: int = Field(
+        20,
+        ge=1,
+        description="test episodes per downstream task (each a distinct held-out goal seed); more: "
+        "narrower confidence intervals, longer evaluation",
+    )
+    validation_episodes_per_task: int = Field(
+        10,
+        ge=1,
+        description="episodes per task on validation goals (seeds disjoint from the test ones), on which "
+        "α, λ and other values are chosen",
+    )
+    horizon: int = Field(
+        500,
+        ge=1,
+        le=500,
+        description="most environment steps per evaluation episode (1-500); an episode succeeds if the "
+        "task reports success at any step within it",
+    )
+    execute_steps: int = Field(
+        1,
+        ge=1,
+        description="actions executed from each predicted chunk before the policy is queried again "
+        "(at most policy.chunk_size); larger: fewer policy calls, less closed-loop",
+    )
+    batch_size: int = Field(
+        64,
+        ge=1,
+        description="environments stepped together per policy call; speed and memory only, never results",
+    )
+    ood_camera: str | None = Field(
+        None,
+        description="out-of-distribution check (pixels only, pipeline): the final checkpoints are also "
+        "tested through this camera, which no demonstration was recorded with; null: no such check",
+    )
 
 
 class SweepSettings(BaseModel):
     """The α × λ grid of the `sweep` flow; choices are made on validation seeds only."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN/inf: refused, naming the field
-    alphas: list[float] = Field(default_factory=lambda: [0.5, 1.1, 1.5])
-    lambdas: list[float] = Field(default_factory=lambda: [1e-5, 1e-4, 1e-3])
-    arm: ArmName = "capvector"
+    alphas: list[float] = Field(
+        default_factory=lambda: [0.5, 1.1, 1.5],
+        description="merge coefficients α tried (θ_meta = θ_pt + α·γ); set the chosen one as `alpha`",
+    )
+    lambdas: list[float] = Field(
+        default_factory=lambda: [1e-5, 1e-4, 1e-3],
+        description="orthogonal weights λ tried with each α (only for an arm with the orthogonal loss); "
+        "set the chosen one as orthogonal.weight",
+    )
+    arm: ArmName = Field(
+        "capvector", description="the arm whose α × λ cells are trained (on seeds[0]) and validated"
+    )
 
 
 class PipelineConfig(BaseModel):
     # NaN or inf in α or a learning rate would only fail after training: refused here, naming the field
     # (the nested configs refuse them too: TrainConfig, AuxConfig, OrthogonalSettings, LoRA, LoRA-SP).
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    name: str = "pipeline"
-    splits: Splits
-    data: DataSettings = DataSettings()
-    policy: AnyPolicyConfig = L1ChunkConfig()
-    pretrain: TrainConfig
-    extraction: TrainConfig
-    aux: AuxConfig = AuxConfig(name="dynamics")
-    downstream: TrainConfig
-    vector: VectorFilter = VectorFilter()
-    alpha: float = Field(1.1, allow_inf_nan=False)
-    orthogonal: OrthogonalSettings = OrthogonalSettings()
-    lora: LoraConfig = LoraConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"])
-    lora_sp: LoraSPConfig = LoraSPConfig(
-        target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"], bank_size=32
+    name: str = Field(
+        "pipeline", description="the run's label (reports, Prefect run names); changes no result"
     )
-    # Learning rate of the LoRA / LoRA-SP arms (adapters usually want several times full fine-tuning's);
-    # None: downstream.lr. Choose it on validation goals, e.g. a one-cell `sweep` with sweep.arm=sft_lora.
-    adapter_lr: float | None = Field(None, gt=0, allow_inf_nan=False)
-    arms: list[ArmName] = Field(default_factory=lambda: ["sft", "aux", "capvector"])
-    seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
-    evaluation: EvalSettings = EvalSettings()
-    sweep: SweepSettings = SweepSettings()
+    splits: Splits = Field(description="which Meta-World tasks each stage trains or is tested on")
+    data: DataSettings = Field(DataSettings(), description="the expert demonstrations")
+    policy: AnyPolicyConfig = Field(L1ChunkConfig(), description="the policy's type and architecture")
+    pretrain: TrainConfig = Field(description="training of θ_pt on D_pt, from scratch")
+    extraction: TrainConfig = Field(description="training of θ_ft and θ_ao on D_ext, from θ_pt")
+    aux: AuxConfig = Field(
+        AuxConfig(name="dynamics"), description="the auxiliary objective of θ_ao and of the `aux` arm"
+    )
+    downstream: TrainConfig = Field(description="each arm's fine-tuning on D_down")
+    vector: VectorFilter = Field(VectorFilter(), description="which tensors γ covers (and θ_meta changes)")
+    alpha: float = Field(
+        1.1,
+        allow_inf_nan=False,
+        description="merge coefficient α: θ_meta = θ_pt + α·γ (the paper's best is 1.1; 0: no capability "
+        "added); chosen on validation by `sweep`; a study chooses its own from study.alphas",
+    )
+    orthogonal: OrthogonalSettings = Field(
+        OrthogonalSettings(), description="the orthogonal loss λ·Σ|γ ⊙ Δ'| of the capvector arms"
+    )
+    lora: LoraConfig = Field(
+        LoraConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"]),
+        description="the adapter of the *_lora arms",
+    )
+    lora_sp: LoraSPConfig = Field(
+        LoraSPConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"], bank_size=32),
+        description="the adapter of the *_lora_sp arms",
+    )
+    adapter_lr: float | None = Field(
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="learning rate of the LoRA / LoRA-SP arms (adapters usually want several times full "
+        "fine-tuning's); null: downstream.lr. Choose it on validation goals, e.g. a one-cell `sweep` "
+        "with sweep.arm=sft_lora",
+    )
+    arms: list[ArmName] = Field(
+        default_factory=lambda: ["sft", "aux", "capvector"],
+        description="downstream recipes compared: sft (from θ_pt), aux (SFT + aux objective), capvector "
+        "(from θ_meta with the orthogonal loss), meta_sft (from θ_meta, plain SFT), and the *_lora / "
+        "*_lora_sp adapter variants; a study uses study.arms instead",
+    )
+    seeds: list[int] = Field(
+        default_factory=lambda: [0],
+        min_length=1,
+        description="training seeds (distinct) of the downstream runs: each arm is trained once per seed, "
+        "so more seeds give tighter comparisons at proportional cost",
+    )
+    evaluation: EvalSettings = Field(EvalSettings(), description="how checkpoints are tested")
+    sweep: SweepSettings = Field(SweepSettings(), description="the α × λ grid of `capvector sweep`")
 
     @model_validator(mode="after")
     def _consistent(self) -> PipelineConfig:

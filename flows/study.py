@@ -63,6 +63,7 @@ def study_steps(cfg: StudyConfig) -> int:
     lambda_grid = 1 + len(s.alphas) + (1 + n_budgets) * cells + 1 if capvector else 0  # γ, merges, ...
     per_draw = 4 + 2 + 6  # θ_ft, θ_ao, γ, γ_null; their D_ext validations; held-out losses at 3 points
     per_draw_merged = 3 if capvector else 0  # θ_meta, θ_null, θ_meta's D_ext validation
+    secondary = 1 + runs  # held-out D_down demos, every compared run's held-out action loss
     starts = (
         1
         + sum(  # budget-0 tests: θ_pt once, each draw's distinct starting checkpoints
@@ -71,7 +72,7 @@ def study_steps(cfg: StudyConfig) -> int:
         * n_draws
     )
     compared = runs * (1 + n_budgets)  # the runs and their test evaluations
-    demos_and_pretraining, pt_validation = 5, 1
+    demos_and_pretraining, pt_validation = 5, 1  # 4 demo sets (the 5th, held-out D_down: secondary)
     analyses = 2 if s.gate else 1
     return (
         demos_and_pretraining
@@ -83,6 +84,7 @@ def study_steps(cfg: StudyConfig) -> int:
         + pt_validation
         + starts
         + compared
+        + secondary
         + analyses
     )
 
@@ -104,6 +106,7 @@ class _Study:
         self.validation_down = cfg.eval_config(validation=True)
         self.validation_ext = cfg.extraction_validation()
         self._started: dict[tuple[str, int], Any] = {}
+        self.heldout_downstream: Any = None  # held-out D_down demos (the secondary endpoint)
 
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
@@ -158,13 +161,18 @@ class _Study:
             self.analysis_inputs[label("test", arm, draw, seed, 0)] = self._started[key]
 
     def test_runs(self, runs: dict[tuple[str, int, int], Any]) -> None:
-        """Every compared run at every budget, on the same test goals."""
+        """Every compared run at every budget, on the same test goals; its final checkpoint's held-out
+        action loss on D_down (the continuous secondary endpoint)."""
         for (arm, d, seed), run in runs.items():
+            what = f"{arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed}"
             for b, checkpoint in snapshots_of(self.workspace, resolve(run)).items():
-                step = f"test {arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed} @ {b}"
                 self.analysis_inputs[label("test", arm, d, seed, b)] = self.submit(
-                    evaluate_task, step, {"checkpoint": checkpoint}, self.test
+                    evaluate_task, f"test {what} @ {b}", {"checkpoint": checkpoint}, self.test
                 )
+            held_out = {"checkpoint": run, "data": self.heldout_downstream}
+            self.analysis_inputs[label("downloss", arm, d, seed)] = self.submit(
+                held_out_loss_task, f"held-out loss D_down {what}", held_out, {}
+            )
 
     def analyse(self, stage: str, design: dict[str, Any]) -> str:
         inputs = {k: resolve(v) for k, v in self.analysis_inputs.items()}
@@ -278,6 +286,9 @@ def _run_study(study: _Study) -> dict[str, Any]:
         for split in ("pretrain", "extraction", "downstream")
     }
     data["heldout"] = submit(collect_demos_task, "demos extraction (held out)", {}, cfg.heldout_demo_config())
+    study.heldout_downstream = submit(
+        collect_demos_task, "demos downstream (held out)", {}, cfg.downstream_heldout_demo_config()
+    )
     pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
     base = {"data": data, "pretrained": pretrained}
     study.analysis_inputs[label("extval", "pt", SHARED)] = submit(

@@ -150,6 +150,17 @@ class StudyConfig(PipelineConfig):
             }
         )
 
+    def downstream_heldout_demo_config(self) -> DemoConfig:
+        """Held-out D_down demonstrations (seeds after the training set's): the secondary endpoint,
+        every compared run's held-out action loss."""
+        train = self.demo_config("downstream")
+        return train.model_copy(
+            update={
+                "episodes_per_task": self.study.heldout_episodes,
+                "seed_offset": train.n_units * UNIT_SEEDS,
+            }
+        )
+
     def extraction_run(
         self, auxiliary: bool, seed: int, lr: float, aux_weight: float | None = None
     ) -> TrainStepConfig:

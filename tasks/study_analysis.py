@@ -38,6 +38,7 @@ from tasks.study_statistics import (
     paired_difference,
     smallest_design,
     success_curve,
+    t_quantile,
 )
 from tasks.workspace import Workspace, provenance, workspace_for
 
@@ -96,6 +97,21 @@ class Precondition(BaseModel):
     comparison: Comparison | None = None
 
 
+class LossComparison(BaseModel):
+    """`arm` − `baseline` in held-out action loss on D_down (lower is better), paired by draw and seed
+    (a shared baseline's run s pairs with every draw's run s); a t interval over the pairs, which
+    treats them as independent (approximate when a shared baseline's run serves several draws)."""
+
+    arm: str
+    baseline: str
+    difference: float
+    ci_low: float
+    ci_high: float
+    n_pairs: int
+    arm_mean: float
+    baseline_mean: float
+
+
 class StudyReport(BaseModel):
     design: StudyDesign
     gate: str | None = None
@@ -107,6 +123,8 @@ class StudyReport(BaseModel):
     curves: dict[str, list[CurvePoint]]
     selections: dict[str, str]
     convergence: list[dict[str, Any]]
+    heldout_loss: list[LossComparison] = []
+    """The continuous secondary endpoint: held-out action loss of the compared runs' final checkpoints."""
     per_task: dict[str, dict[str, float]] = {}
     """Arm -> task -> mean success (points) at the primary endpoint, over draws, seeds and goals."""
     final_checkpoints: dict[str, list[str]]
@@ -329,6 +347,7 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         curves=curves,
         selections={name[0]: sel for name, sel in _parse(inputs, "selection")},
         convergence=convergence,
+        heldout_loss=_heldout_loss(workspace, inputs),
         per_task={
             arm: {task: 100 * float(v) for task, v in rows.groupby("task")["success"].mean().items()}
             for arm, rows in episodes[episodes["budget"] == ENDPOINT].groupby("arm")
@@ -344,6 +363,38 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
             if c.budget == ENDPOINT and c.arm in ("capvector", "aux")
         },
     )
+
+
+def _heldout_loss(workspace: Workspace, inputs: dict[str, str]) -> list[LossComparison]:
+    losses = {
+        (arm, int(d), int(s)): measured_loss(workspace, m) for (arm, d, s), m in _parse(inputs, "downloss")
+    }
+    out = []
+    for arm, baseline in COMPARED:
+        pairs = []
+        for (a, d, s), value in losses.items():
+            if a != arm:
+                continue
+            base = losses.get((baseline, d, s), losses.get((baseline, SHARED_DRAW, s)))
+            if base is not None:
+                pairs.append((value, base))
+        if len(pairs) < 2:
+            continue
+        diffs = np.array([a - b for a, b in pairs])
+        half = t_quantile(0.975, len(diffs) - 1) * diffs.std(ddof=1) / math.sqrt(len(diffs))
+        out.append(
+            LossComparison(
+                arm=arm,
+                baseline=baseline,
+                difference=float(diffs.mean()),
+                ci_low=float(diffs.mean() - half),
+                ci_high=float(diffs.mean() + half),
+                n_pairs=len(diffs),
+                arm_mean=float(np.mean([a for a, _ in pairs])),
+                baseline_mean=float(np.mean([b for _, b in pairs])),
+            )
+        )
+    return out
 
 
 def _gate_verdict(design: StudyDesign, preconditions: list[Precondition]) -> str | None:

@@ -161,6 +161,21 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
             f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, ENDPOINT))} | "
             f"{_cell(_find(report, arm, baseline, final))} |"
         )
+    if report.heldout_loss:
+        lines += [
+            "",
+            "## Held-out action loss on D_down (secondary, continuous; lower is better)",
+            "",
+            "| comparison | difference [95 % CI] | arm | baseline | pairs |",
+            "|---|---|---|---|---|",
+        ]
+        for c in report.heldout_loss:
+            lines.append(
+                f"| {NAMES.get(c.arm, c.arm)} − {NAMES.get(c.baseline, c.baseline)} | {c.difference:+.4f} "
+                f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {c.arm_mean:.4f} | {c.baseline_mean:.4f} | "
+                f"{c.n_pairs} |"
+            )
+        lines += ["", "Paired by draw and seed; a t interval over the pairs (approximate, see the analysis)."]
     curve_budgets = sorted({p.budget for points in report.curves.values() for p in points})
     lines += [
         "",

@@ -36,14 +36,31 @@ class OrthogonalSettings(BaseModel):
     """λ·Σ|γ ⊙ Δ'|; `mode` for adapters: `lora_exact` (B·A materialised) or `lora_a` (A only)."""
 
     model_config = ConfigDict(extra="forbid")
-    weight: float = Field(1e-4, allow_inf_nan=False)  # λ; NaN/inf refused at validation
-    # "action_gradient": λ = weight × ‖∇ action loss‖ / ‖γ‖ measured at θ_meta before training (over the
-    # regularized tensors), so weight 1 means "a gradient as large as the action loss's" on any model;
-    # "absolute": λ = weight (the paper's 1e-4 was tuned on a 7B model, where Σ|γ·Δ| is far larger).
-    scale: Literal["absolute", "action_gradient"] = "absolute"
-    lora_mode: Literal["lora_exact", "lora_a"] = "lora_exact"
-    include: list[str] | None = None
-    exclude: list[str] | None = None
+    weight: float = Field(
+        1e-4,
+        allow_inf_nan=False,
+        description="λ (or λ's multiple, see scale); larger: downstream updates kept further off γ, 0: "
+        "no penalty. Chosen by `sweep` (sweep.lambdas); a study uses study.lambda_scales",
+    )
+    scale: Literal["absolute", "action_gradient"] = Field(
+        "absolute",
+        description="`absolute`: λ = weight (the paper's 1e-4 was tuned on a 7B model, where Σ|γ·Δ| is far "
+        "larger); `action_gradient`: λ = weight × ‖∇ action loss‖ / ‖γ‖ at θ_meta before training, so "
+        "weight 1 means a gradient as large as the action loss's on any model (full fine-tuning only; "
+        "a study always uses it)",
+    )
+    lora_mode: Literal["lora_exact", "lora_a"] = Field(
+        "lora_exact",
+        description="adapter arms: `lora_exact` penalises each adapter's dense update B·A against γ; "
+        "`lora_a` the cheaper projection of γ on A only",
+    )
+    include: list[str] | None = Field(
+        None,
+        description="γ tensors the penalty covers, by name (module_patterns syntax); null: all of them",
+    )
+    exclude: list[str] | None = Field(
+        None, description="γ tensors left out of the penalty (module_patterns syntax); null: none"
+    )
 
 
 class TrainStepConfig(BaseModel):

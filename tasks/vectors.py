@@ -17,8 +17,14 @@ class VectorFilter(BaseModel):
     """Which tensors a vector covers (glob patterns on tensor names); empty means all."""
 
     model_config = ConfigDict(extra="forbid")
-    include: list[str] | None = None
-    exclude: list[str] | None = None
+    include: list[str] | None = Field(
+        None,
+        description="tensors γ covers, by name (module_patterns syntax, e.g. `backbone.*`); the others "
+        "stay at θ_pt in θ_meta; null: every tensor",
+    )
+    exclude: list[str] | None = Field(
+        None, description="tensors left out of γ (module_patterns syntax); null: none"
+    )
 
 
 class MergeConfig(VectorFilter):

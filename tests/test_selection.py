@@ -57,9 +57,7 @@ def test_a_candidate_with_several_budgets_is_judged_on_their_mean(tmp_path):
     }
     config = {
         "name": "aux weight",
-        "candidates": [
-            {"values": {"w": w}, "evaluations": [f"{w} @ 1", f"{w} @ 2"]} for w in ("a", "b")
-        ],
+        "candidates": [{"values": {"w": w}, "evaluations": [f"{w} @ 1", f"{w} @ 2"]} for w in ("a", "b")],
     }
     selection = run_select(ws, "select w", evals, config)
     assert chosen(ws, selection) == {"w": "b"}

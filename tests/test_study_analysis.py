@@ -77,10 +77,14 @@ def test_known_effects_are_found_and_preconditions_follow_the_evidence(tmp_path)
     ws = Workspace(tmp_path / "home")
     inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1, 2])
     report = analyse(ws, inputs, design)
-    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT))
+    main = next(
+        c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT)
+    )
     assert main.ci_low > 0 and main.difference == pytest.approx(40, abs=10)
     upper = next(
-        c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("sft_from_ao", "sft_from_ft", ENDPOINT)
+        c
+        for c in report.comparisons
+        if (c.arm, c.baseline, c.budget) == ("sft_from_ao", "sft_from_ft", ENDPOINT)
     )
     assert upper.ci_low < upper.difference < upper.ci_high
     verdicts = {p.key: p.holds for p in report.preconditions}
@@ -97,7 +101,9 @@ def test_a_one_draw_study_is_analysed(tmp_path):
     ws = Workspace(tmp_path / "home")
     inputs, design = _study(ws, draws=[0], seeds=[0, 1])
     report = analyse(ws, inputs, design.model_copy(update={"draws": [0], "seeds": [0, 1]}))
-    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT))
+    main = next(
+        c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT)
+    )
     assert main.n_draws == 1 and main.unestimated  # what one draw cannot separate is named
 
 
@@ -127,7 +133,9 @@ def test_the_endpoint_is_each_goals_mean_over_the_budgets(tmp_path):
     _, design = _study(Workspace(tmp_path / "other"), draws=[0], seeds=[0, 1])
     design = design.model_copy(update={"arms": ["sft", "capvector"], "draws": [0]})
     report = analyse(ws, inputs, design)
-    main = next(c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT))
+    main = next(
+        c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT)
+    )
     assert main.arm_mean == pytest.approx(50.0) and main.baseline_mean == 0.0
     assert [p.budget for p in report.curves["capvector"]] == [10, 20]
     with pytest.raises(ValueError, match="lacks test episodes at some of the endpoint's budgets"):
@@ -160,3 +168,18 @@ def test_precondition_e_measures_how_alike_the_draws_are_against_seed_noise(tmp_
     inputs[label("vector", 1)] = _tensors_file(ws, tmp_path, "gamma1-opposite", opposite, "vector")
     e = next(p for p in analyse(ws, inputs, design).preconditions if p.key == "e")
     assert e.holds is False and e.detail_values["mean_cosine"] == pytest.approx(-1.0)
+
+
+def test_the_secondary_endpoint_pairs_held_out_losses_by_draw_and_seed(tmp_path):
+    ws = Workspace(tmp_path / "home")
+    inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1, 2])
+    for s in (0, 1, 2):
+        inputs[label("downloss", "sft", -1, s)] = _loss(ws, f"sft {s}", 0.30 + 0.01 * s)
+        for d in (0, 1):  # CapVector 0.05 lower than the shared SFT run of its seed, ± a little
+            inputs[label("downloss", "capvector", d, s)] = _loss(
+                ws, f"cv {d} {s}", 0.25 + 0.01 * s + 0.002 * d
+            )
+    report = analyse(ws, inputs, design)
+    (c,) = [c for c in report.heldout_loss if (c.arm, c.baseline) == ("capvector", "sft")]
+    assert c.n_pairs == 6 and c.difference == pytest.approx(-0.049, abs=1e-9)
+    assert c.ci_low < c.difference < c.ci_high < 0

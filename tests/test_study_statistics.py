@@ -15,9 +15,9 @@ import pytest
 from tasks.study_statistics import (
     ENDPOINT,
     SHARED_DRAW,
-    endpoint_rows,
     VarianceComponents,
     design_mdd,
+    endpoint_rows,
     estimate_variance_components,
     minimum_detectable_difference,
     paired_difference,

@@ -34,9 +34,17 @@ from capvector_core.policy import Batch, PolicyOutput, register_policy
 
 
 class FlowConfig(TokenBackboneConfig):
-    type: str = "flow"
+    """The token backbone with a flow-matching action expert (noise to action chunks)."""
+
+    type: str = Field(
+        "flow",
+        description="registered policy type: flow (a flow-matching action expert) or l1_chunk "
+        "(OpenVLA-OFT-style chunks, L1 loss); it decides which other fields exist",
+    )
     integration_steps: int = Field(10, gt=0, description="Euler steps from noise to actions at inference")
-    inference_seed: int = 0
+    inference_seed: int = Field(
+        0, description="seed of the one fixed noise draw actions start from at inference (deterministic)"
+    )
     time_beta: tuple[PositiveFloat, PositiveFloat] = Field(
         (1.5, 1.0), description="Beta(a, b) for the training time τ (finite, > 0)"
     )

@@ -12,13 +12,20 @@ from collections.abc import Collection
 
 import torch
 import torch.nn.functional as F
+from pydantic import Field
 
 from capvector_core.policies.token_backbone import ActionHead, TokenBackboneConfig, TokenPolicy
 from capvector_core.policy import Batch, PolicyOutput, register_policy
 
 
 class L1ChunkConfig(TokenBackboneConfig):
-    type: str = "l1_chunk"
+    """The token backbone with K action queries decoded in parallel, trained with an L1 loss."""
+
+    type: str = Field(
+        "l1_chunk",
+        description="registered policy type: l1_chunk (OpenVLA-OFT-style chunks, L1 loss) or flow (a "
+        "flow-matching action expert); it decides which other fields exist",
+    )
 
 
 @register_policy("l1_chunk", L1ChunkConfig)

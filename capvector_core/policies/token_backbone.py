@@ -49,19 +49,35 @@ STATE_GROUPS: dict[str, tuple[int, int]] = {
 class TokenBackboneConfig(PolicyConfig):
     """Architecture and input settings shared by the token-backbone policies."""
 
-    d_model: int = Field(128, gt=0)
-    n_layers: int = Field(4, gt=0)
-    n_heads: int = Field(4, gt=0)
-    ffn_mult: int = Field(4, gt=0)
-    dropout: float = Field(0.0, ge=0.0, lt=1.0)
+    d_model: int = Field(
+        128, gt=0, description="transformer width (every token's size); divisible by n_heads; cost ~ d_model²"
+    )
+    n_layers: int = Field(4, gt=0, description="transformer blocks (depth)")
+    n_heads: int = Field(4, gt=0, description="attention heads per block (d_model / n_heads per head)")
+    ffn_mult: int = Field(4, gt=0, description="MLP hidden size as a multiple of d_model")
+    dropout: float = Field(
+        0.0, ge=0.0, lt=1.0, description="dropout probability in attention and MLPs, training only (0-1)"
+    )
     chunk_size: int = Field(8, gt=0, description="K: actions predicted per call")
-    stem_channels: list[int] = Field(default_factory=lambda: [32, 64, 64, 128])
-    state_tokens: Literal["grouped", "single"] = "grouped"
-    vocab_size: int = Field(512, ge=2)
-    max_instruction_tokens: int = Field(12, gt=0)
-    state_dim: int = Field(39, gt=0)
-    proprio_dim: int = Field(4, gt=0)
-    action_dim: int = Field(4, gt=0)
+    stem_channels: list[int] = Field(
+        default_factory=lambda: [32, 64, 64, 128],
+        description="output channels of the pixels conv stem, one stride-2 conv each: the token grid is "
+        "image_size / 2**len(stem_channels) per side",
+    )
+    state_tokens: Literal["grouped", "single"] = Field(
+        "grouped",
+        description="state mode: `grouped` (five tokens: hand, object 1, object 2, previous frame, goal; "
+        "needs state_dim 39) or `single` (one token for the whole state)",
+    )
+    vocab_size: int = Field(
+        512, ge=2, description="hashed instruction-word ids (id 0 is padding); smaller: more collisions"
+    )
+    max_instruction_tokens: int = Field(
+        12, gt=0, description="instruction words kept (longer ones are cut); language tokens per sequence"
+    )
+    state_dim: int = Field(39, gt=0, description="size of the state vector (Meta-World's is 39)")
+    proprio_dim: int = Field(4, gt=0, description="size of the proprioception vector (hand xyz, gripper)")
+    action_dim: int = Field(4, gt=0, description="size of one action (Meta-World: Δxyz and gripper)")
     obs_transform: ObsTransformConfig = Field(
         default_factory=ObsTransformConfig,
         description="fixed map of the standardized state before the state tokens (capvector_core.obs_transforms)",
