@@ -16,9 +16,10 @@ or frozen are skipped.
 Cost: in dense mode the loss is one autograd node over all regularized tensors (`_DenseL1`:
 `torch._foreach_*` ops forward, and the gradient written out, λ·γ·sign(γ ⊙ Δ'), in one pass backward)
 instead of a sub/mul/norm chain per tensor; tensors whose γ is zero everywhere are left out of the
-arithmetic (their term is 0, their gradient an all-zero tensor, as before). Gradients are the per-tensor expression's bit
-for bit on float32, and so is the value unless a zero-γ tensor was left out of the final sum (then
-equal up to that sum's rounding order); tests/test_orthogonal.py checks both. The adapter modes keep
+arithmetic (their term is 0, their gradient an all-zero tensor, as before). Gradients are the
+per-tensor expression's bit for bit on float32, and so is the value unless a zero-γ tensor was left
+out of the final sum (then equal up to that sum's rounding order); tests/test_orthogonal.py checks
+both. The adapter modes keep
 one expression per layer (ΔW is built per layer by peft).
 
 Modes:
