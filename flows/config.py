@@ -174,6 +174,9 @@ class EvalSettings(BaseModel):
         description="out-of-distribution check (pixels only, pipeline): the final checkpoints are also "
         "tested through this camera, which no demonstration was recorded with; null: no such check",
     )
+    record_video: int = Field(
+        0, ge=0, description="test episodes per task recorded as GIF videos (artifacts of kind `video`)"
+    )
 
 
 class SweepSettings(BaseModel):
@@ -365,6 +368,7 @@ class PipelineConfig(BaseModel):
             image_size=self.data.image_size,
             execute_steps=self.evaluation.execute_steps,
             batch_size=self.evaluation.batch_size,
+            record_video=0 if validation else self.evaluation.record_video,
         )
 
 

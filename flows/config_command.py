@@ -32,13 +32,21 @@ def describe(model: BaseModel, prefix: str = "") -> Iterator[tuple[str, Any, str
 
 
 def _docstring_line(cls: type, field: str) -> str:
-    """A field documented in its class's `Args:` block (LeRobot's style) when it has no description."""
-    doc = cls.__doc__ or ""
+    """A field documented in its class's `Args:` block (LeRobot's style) when it has no description:
+    its line and the more-indented lines that continue it, joined."""
+    lines = (cls.__doc__ or "").splitlines()
     marker = f"{field}:"
-    for line in doc.splitlines():
+    for i, line in enumerate(lines):
         stripped = line.strip()
-        if stripped.startswith(marker):
-            return stripped[len(marker) :].strip()
+        if not stripped.startswith(marker):
+            continue
+        indent = len(line) - len(line.lstrip())
+        parts = [stripped[len(marker) :].strip()]
+        for more in lines[i + 1 :]:
+            if not more.strip() or len(more) - len(more.lstrip()) <= indent:
+                break
+            parts.append(more.strip())
+        return " ".join(parts)
     return ""
 
 
