@@ -268,6 +268,7 @@ def evaluate(
     obs_mode: str = "state",
     camera: Annotated[str, typer.Option(help="pixels: camera (another tests generalization)")] = "corner2",
     image_size: Annotated[int, typer.Option(help="image side for pixels policies")] = 64,
+    video: Annotated[int, typer.Option(help="episodes per task recorded as GIF video artifacts")] = 0,
     runner: RunnerOption = None,
     address: AddressOption = None,
     workers: WorkersOption = 2,
@@ -290,6 +291,7 @@ def evaluate(
         obs_mode=obs_mode,
         camera=camera,
         image_size=image_size,
+        record_video=video,
     )
     flow_fn = _on_runner(evaluate_flow, runner_config)
     from flows.runs import run_tags
