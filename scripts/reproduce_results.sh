@@ -1,18 +1,19 @@
 #!/usr/bin/env bash
-# Reproduces the study reports in docs/ with the `study` flow: every choice (lr, auxiliary weight, α, λ)
-# is made inside the flow on validation goals and recorded as a `selection` artifact. Every step is
-# cached, so a study interrupted in one session goes on where it stopped in the next.
-#   small  -> docs/study_small.md   the default of `make run` (about 20 minutes on 2 cores cold)
-#   state  -> docs/study_state.md   state observations, 252 test goals per checkpoint
-#   pixels -> docs/study_pixels.md  camera images, per-patch depth targets (GPU-sized; runs on CPU slowly)
-# Usage: scripts/reproduce_results.sh [small|state|pixels|all]   (CAPVECTOR_HOME defaults to ./capvector_home)
-# The earlier reports (docs/results*.md) came from `capvector run` and `sweep` calls of commit cc24b72's
-# version of this script.
+# Reproduces the study reports in docs/ with the `study` flow: every choice (lr, auxiliary weights, α,
+# λ) is made inside the flow on validation goals and recorded as a `selection` artifact; each report is
+# written with its figures beside it. Every step is cached, so a study interrupted in one session goes on
+# where it stopped in the next.
+#   control-small -> docs/study_control_small.md  the default of `make run`: the positive-control testbed
+#   control       -> docs/study_control.md        the same testbed, 2 draws x 2 seeds x 140 test goals
+#   state         -> docs/study_state.md          the earlier state testbed (no positive control)
+#   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized)
+# Usage: scripts/reproduce_results.sh [control-small|control|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+# The calibration behind the control presets: docs/calibration.md (scripts/calibrate.py, scripts/pilot_aux.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-study() { .venv/bin/capvector study --preset "study-$1" --report "docs/study_$1.md"; }
-case "${1:-small}" in
-  small | state | pixels) study "$1" ;;
-  all) study small && study state && study pixels ;;
-  *) echo "usage: $0 [small|state|pixels|all]" >&2; exit 2 ;;
+preset="${1:-control-small}"
+case "$preset" in
+  control-small | control | state | pixels)
+    .venv/bin/capvector study --preset "study-$preset" --report "docs/study_${preset//-/_}.md" ;;
+  *) echo "usage: $0 [control-small|control|state|pixels]" >&2; exit 2 ;;
 esac
