@@ -157,7 +157,10 @@ def _quiet_dask_logs() -> None:
     """Dask's own INFO lines (scheduler and worker start/stop, a nanny's closing workers) stay off
     the user's terminal; warnings and errors still show."""
     import logging
+    import warnings
 
+    # A local cluster's scheduler serves HTTP (health, metrics) on 8787 or, taken, on another port
+    warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
     for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
         logger = logging.getLogger(name)
         if logger.getEffectiveLevel() < logging.WARNING:

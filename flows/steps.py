@@ -82,12 +82,18 @@ class CacheProbe(StepRunner):
             self._report(step, "cached")
 
 
+OUTCOME_WAIT_S = 30.0
+
+
 def _outcome(future: PrefectFuture) -> str:
     """How a finished step ended. Never raises: it runs as a done-callback, where an exception (a step
     whose upstream failed cannot even be resolved) would be printed as a traceback; the flow reports
     the failure itself, in one line."""
     try:
-        future.wait(timeout=0)  # records the final state, which `state` would otherwise fetch (stale)
+        # Records the final state, which `state` would otherwise fetch from the API (stale). The future
+        # is done: a pool's answers at once; a Dask future fetches its state from the worker first
+        # (callbacks run on Dask's callback thread, so waiting here blocks no step).
+        future.wait(timeout=OUTCOME_WAIT_S)
         state = future.state
     except Exception:
         return "failed"

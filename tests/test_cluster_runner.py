@@ -1,0 +1,170 @@
+"""`--runner dask --address`: the steps of a run go to an existing Dask scheduler's workers, on
+loopback here (`dask scheduler` and two `dask worker` processes, one offering GPU=1), and give the
+same artifact ids as the default process pool. A step whose config asks for cuda runs only on the
+worker that offers a GPU (scheduling only: nothing here touches a GPU)."""
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import REPO, run_cli
+
+from flows.pipeline import pipeline_steps
+from flows.runners import RunnerConfig, runner_config
+
+TESTS = REPO / "tests"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(args: list[str], root: Path, name: str) -> tuple[subprocess.Popen, Path]:
+    """A dask process in its own session and HOME, importing this repository (and tests/)."""
+    home = root / name
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    env.update(HOME=str(home), PREFECT_HOME=str(home / "prefect"), PYTHONPATH=f"{REPO}{os.pathsep}{TESTS}")
+    log = root / f"{name}.log"
+    dask = str(Path(sys.executable).with_name("dask"))
+    proc = subprocess.Popen(
+        [dask, *args],
+        cwd=REPO,
+        env=env,
+        stdout=log.open("wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    return proc, log
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            pass
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)  # a nanny's worker left behind
+    except ProcessLookupError:
+        pass
+    proc.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """(scheduler address, {worker address: log}, GPU worker address): a scheduler and two workers."""
+    from distributed import Client
+
+    root = tmp_path_factory.mktemp("dask-cluster")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    worker_args = ["worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"]
+    procs = [
+        _start(["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], root, "scheduler")
+    ]
+    try:
+        for name, extra in (("gpu-worker", ["--resources", "GPU=1"]), ("cpu-worker", [])):
+            procs.append(_start([*worker_args, "--local-directory", str(root / name), *extra], root, name))
+        deadline = time.monotonic() + 120
+        with Client(address, timeout=120) as client:
+            while len(client.scheduler_info()["workers"]) < 2:
+                dead = [log for proc, log in procs if proc.poll() is not None]
+                if dead or time.monotonic() > deadline:
+                    pytest.fail(
+                        "dask cluster did not start:\n" + "\n".join(p.read_text()[-2000:] for p in dead)
+                    )
+                time.sleep(0.5)
+            workers = client.scheduler_info()["workers"]
+        gpu = next(a for a, w in workers.items() if w.get("resources", {}).get("GPU"))
+        logs = {a: root / ("gpu-worker.log" if a == gpu else "cpu-worker.log") for a in workers}
+        yield address, logs, gpu
+    finally:
+        for proc, _ in reversed(procs):
+            _stop(proc)
+
+
+def _executed(address: str) -> dict[str, int]:
+    """Tasks each worker has executed since it started."""
+    from distributed import Client
+
+    with Client(address, timeout=30) as client:
+        return client.run(lambda dask_worker: dask_worker.state.executed_count)
+
+
+def test_cuda_steps_run_only_on_the_gpu_worker(cluster):
+    address, _, gpu = cluster
+    proc = subprocess.run(
+        [sys.executable, str(TESTS / "gpu_placement_probe.py"), address, "4"],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{TESTS}", "CAPVECTOR_QUIET": "1"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+        start_new_session=True,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ran_on = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert len(ran_on) == 8
+    cuda = {step: worker for step, worker in ran_on.items() if step.startswith("cuda")}
+    cpu = {step: worker for step, worker in ran_on.items() if step.startswith("cpu")}
+    assert set(cuda.values()) == {gpu}, ran_on
+    assert set(cpu.values()) - {gpu}, ran_on  # the other worker took cpu steps: the GPU one was asked for
+
+
+def test_smoke_run_on_the_cluster_gives_the_process_pool_ids(cluster, smoke_home, tmp_path):
+    address, logs, _ = cluster
+    before = _executed(address)
+    started = time.monotonic()
+    proc = run_cli(
+        "run", "--preset", "smoke", "--runner", "dask", "--address", address, "--json",
+        home=tmp_path / "home", env={"CAPVECTOR_QUIET": "0"}, timeout=600,
+    )  # fmt: skip
+    elapsed = time.monotonic() - started
+    assert json.loads(proc.stdout) == smoke_home[1]
+
+    from flows.config import load_config
+
+    after = _executed(address)
+    ran = {worker: after[worker] - before.get(worker, 0) for worker in after}
+    assert sum(ran.values()) == pipeline_steps(load_config("smoke", None)), ran  # every step, on a worker
+    worker_logs = "\n".join(log.read_text() for log in logs.values())
+    assert "[pretrain θ_pt] 30/30 steps" in worker_logs  # a step's progress, printed where it ran
+
+    # the terminal: progress lines, no Dask or Prefect INFO records, no teardown noise
+    assert "[pipeline smoke 15/15]" in proc.stderr
+    assert not re.search(r" - INFO - |\| INFO +\|", proc.stderr), proc.stderr[-3000:]
+    assert "killed by signal" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    print(f"smoke run on the dask cluster: {elapsed:.0f} s, steps per worker {ran}")
+
+
+def test_runner_options_are_checked():
+    assert RunnerConfig().kind == "process" and RunnerConfig().workers == 2
+    config = runner_config("dask", None, 3, "distributed.LocalCluster", '{"n_workers": 1}')
+    assert config.cluster_kwargs == {"n_workers": 1}
+    bad = {
+        ("dask", "127.0.0.1:8786", None, None): "starts with tcp://",
+        ("dask", None, "nowhere.Cluster", None): "--cluster-class: cannot import 'nowhere.Cluster'",
+        ("dask", None, None, "[1]"): "must be a JSON object",
+        ("dask", "tcp://h:1", None, '{"n_workers": 2}'): "no --cluster-class/--cluster-kwargs",
+        ("process", "tcp://h:1", None, None): "--address is for --runner dask or ray",
+        ("gpu", None, None, None): "--runner: Input should be",
+    }
+    for (kind, address, cluster_class, kwargs), message in bad.items():
+        with pytest.raises(ValueError, match=re.escape(message)):
+            runner_config(kind, address, 2, cluster_class, kwargs)
+    try:
+        import prefect_ray  # noqa: F401
+    except ImportError:
+        with pytest.raises(ValueError, match="pip install prefect-ray"):
+            runner_config("ray", None, 2, None, None)
