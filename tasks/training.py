@@ -17,13 +17,14 @@ from typing import Any, Literal
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from capvector_core import lora, lora_sp
+from capvector_core import lora
 from capvector_core.demos import DemoDataset
 from capvector_core.lora import LoraConfig
 from capvector_core.lora_sp import LoraSPConfig
 from capvector_core.orthogonal import OrthogonalRegularizer
 from capvector_core.policy import AnyPolicyConfig, Policy, build_policy, load_policy, save_policy
 from capvector_core.trainer import TrainConfig, train
+from tasks.adapters import ADAPTERS
 from tasks.caching import cached_step, selected_by
 from tasks.prefect_task import pipeline_task
 from tasks.progress import progress_printer
@@ -69,17 +70,16 @@ class TrainStepConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     policy: AnyPolicyConfig | None = None  # only for training from scratch (no `init` input)
     train: TrainConfig
-    adapter: Literal["full", "lora", "lora_sp"] = "full"
+    adapter: Literal[tuple(ADAPTERS)] = "full"  # type: ignore[valid-type]  # tasks.adapters: the registry
     lora: LoraConfig | None = None
     lora_sp: LoraSPConfig | None = None
     orthogonal: OrthogonalSettings | None = None
 
     @model_validator(mode="after")
     def _adapter_config_present(self) -> TrainStepConfig:
-        if self.adapter == "lora" and self.lora is None:
-            raise ValueError("adapter 'lora' needs a `lora` config")
-        if self.adapter == "lora_sp" and self.lora_sp is None:
-            raise ValueError("adapter 'lora_sp' needs a `lora_sp` config")
+        form = ADAPTERS[self.adapter]
+        if form.needs_settings() and form.settings(self) is None:
+            raise ValueError(f"adapter {self.adapter!r} needs a `{self.adapter}` config")
         return self
 
 
@@ -101,7 +101,7 @@ def _orthogonal(
     if "vector" not in inputs or "init" not in inputs:
         raise ValueError("the orthogonal regularizer needs inputs `vector` (γ) and `init` (θ_meta)")
     settings = cfg.orthogonal
-    mode = "dense" if cfg.adapter == "full" else settings.lora_mode
+    mode = ADAPTERS[cfg.adapter].orthogonal_mode(settings.lora_mode)
     if settings.scale == "action_gradient" and mode != "dense":
         raise ValueError("orthogonal.scale 'action_gradient' needs full fine-tuning (adapter 'full')")
     return OrthogonalRegularizer(
@@ -148,14 +148,10 @@ def _calibration_batches(
     ]
 
 
-def _policy_loss(model: Policy, batch: dict[str, torch.Tensor]) -> None:
-    """Calibration runs the policy's own loss: every policy type has one (not all have `forward`)."""
-    model.compute_loss(batch)
-
-
 def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     cfg = TrainStepConfig.model_validate(config)
-    if cfg.train.snapshot_steps and cfg.adapter != "full":
+    form = ADAPTERS[cfg.adapter]
+    if cfg.train.snapshot_steps and not form.snapshots:
         raise ValueError(f"step {step!r}: train.snapshot_steps needs full fine-tuning (adapter 'full')")
     if "data" not in inputs:
         raise ValueError(f"step {step!r}: training needs a `data` input (a dataset artifact id)")
@@ -163,10 +159,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
     def produce(key: str) -> str:
         dataset = DemoDataset.load(workspace.path(inputs["data"]))
         model = _initial_policy(workspace, cfg, inputs.get("init"))
-        if cfg.adapter == "lora":
-            lora.apply_lora(model, cfg.lora)
-        elif cfg.adapter == "lora_sp":
-            lora_sp.apply_lora_sp(model, cfg.lora_sp)
+        form.apply(model, cfg)
         extra: dict[str, Any] = {}
         regularizer = _orthogonal(workspace, model, cfg, inputs)
         lam = {}
@@ -179,8 +172,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                 lam["lambda_scale"] = scale
             lam["orthogonal_lambda"] = regularizer.weight
             extra["orthogonal"] = regularizer
-        if cfg.adapter == "lora_sp":
-            extra["lora_sp"] = lora_sp.lora_sp_loss
+        extra |= form.extra_losses()
         trainable = lora.trainable_parameter_count(model)
         run_dir = workspace.run_dir(key)
         result = train(
@@ -199,17 +191,8 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
             **lam,
         }
         with workspace.scratch() as tmp:
-            adapter_dir = None
-            if cfg.adapter == "lora":
-                adapter_dir = lora.save_adapter(model, tmp / "adapter")
-                lora.merge_lora(model)
-            elif cfg.adapter == "lora_sp":
-                lora_sp.calibrate(
-                    model, _calibration_batches(model, dataset, cfg.train.seed), forward=_policy_loss
-                )
-                summary["active_ranks"] = lora_sp.active_ranks(model, since_reset=True)
-                adapter_dir = lora_sp.save_adapter(model, tmp / "adapter")
-                lora.merge_lora(model)
+            calibration = lambda: _calibration_batches(model, dataset, cfg.train.seed)  # noqa: E731
+            adapter_dir = form.finish(model, tmp / "adapter", calibration, summary)
             weights = save_policy(model, tmp / "model.safetensors", {"capvector.step": step})
             parents = [(inputs["data"], "data")]
             if "init" in inputs:
