@@ -8,6 +8,9 @@ Layout under the root:
     quarantine/<time>/<id>/            objects without a sidecar that `gc` moved aside (never deleted)
 
 An artifact is visible only once its sidecar exists; an object directory without one is invisible.
+Locally an object directory is committed by one rename. An object store (S3, GCS, ...) has no
+directories to rename: each staged file is copied to its final key (one atomic copy per object, server
+side), then the sidecar is written; a writer killed before its sidecar leaves only invisible keys.
 `gc` never deletes one: a write killed before its sidecar and an artifact whose sidecar was lost look
 alike, so it is moved to quarantine/ (or, when something names it as a parent, left in place).
 Ids: sha256 of the file bytes (so `sha256sum` agrees) or, for a directory, of its
@@ -422,11 +425,18 @@ class ArtifactStore:
         elif self.fs.exists(path):
             self.fs.rm(path, recursive=True)
 
-    def _commit_object(self, staged: str, artifact_id: str) -> None:
-        """Move a fully written staging directory to its content address (a no-op if already there)."""
+    def _commit_object(
+        self, staged: str, artifact_id: str, entries: list[tuple[str, int, str]], present: bool
+    ) -> None:
+        """Put a fully written staging directory at its content address; `present`: an intact copy is
+        already committed there (the staged one is dropped).
+
+        Locally by one rename (a no-op when the object is there). Elsewhere each staged file is copied
+        to its final key, replacing whatever a write killed before its sidecar left there; the
+        sidecar, written after this returns, is what makes the artifact visible."""
         final = self.object_path(artifact_id)
-        self.fs.makedirs(posixpath.dirname(final), exist_ok=True)
         if self.local:
+            self.fs.makedirs(posixpath.dirname(final), exist_ok=True)
             try:
                 os.rename(staged, final)
             except OSError as e:
@@ -434,10 +444,31 @@ class ArtifactStore:
                     raise
                 shutil.rmtree(staged, ignore_errors=True)  # same content already committed
             _fsync_dir(posixpath.dirname(final))
-        elif self.fs.exists(final):
+        elif present:
             self._discard(staged)
         else:
-            self.fs.mv(staged, final, recursive=True)
+            self._copy_files(staged, final, [rel for rel, _, _ in entries])
+            self._discard(staged)
+
+    def _copy_files(self, src: str, dst: str, rels: list[str]) -> None:
+        """Copy the files `rels` under `src` to the same relative keys under `dst` on a remote store
+        (server side where the filesystem can: S3 CopyObject, GCS rewrite), all before returning."""
+        if rels:
+            self.fs.makedirs(dst, exist_ok=True)
+            srcs = [posixpath.join(src, rel) for rel in rels]
+            dsts = [posixpath.join(dst, rel) for rel in rels]
+            self.fs.copy(srcs, dsts)
+
+    def _move_tree(self, src: str, dst: str) -> None:
+        """Move a directory (or an object store's key prefix) to a new place: a rename locally; on an
+        object store a copy of every key under it, then their removal."""
+        if self.local:
+            os.rename(src, dst)
+            return
+        base = src.rstrip("/") + "/"
+        rels = [p[len(base) :] for p in self.fs.find(src) if p.startswith(base)]
+        self._copy_files(src, dst, rels)
+        self.fs.rm(src, recursive=True)
 
     def _stat(self, path: str) -> tuple[int, int | None]:
         """(size, mtime in ns) of a stored file; the mtime lets reads skip re-hashing unchanged files."""
@@ -522,12 +553,17 @@ class ArtifactStore:
         task_run_id: str | None,
     ) -> ArtifactRecord:
         existing = self._committed_record(artifact_id)
+        present = existing is not None
         if existing is not None:
             if self.local and existing.layout == layout and self._swappable(existing, entries):
                 self._swap_in(staged, existing, entries)
             elif not self._intact(existing):
                 self._repair_with(staged, existing, layout, entries)
-        self._commit_object(staged, artifact_id)  # no-op when present; restores a deleted object otherwise
+                present = False
+                if layout == "file" and existing.files:  # the staged file now has the recorded name
+                    entries = [(existing.files[0].path, entries[0][1], entries[0][2])]
+        # no-op when present; restores a deleted or damaged object otherwise
+        self._commit_object(staged, artifact_id, entries, present)
         if existing is not None:
             return existing  # written before: content addressing makes this idempotent
         obj = self.object_path(artifact_id)
@@ -1204,10 +1240,7 @@ class ArtifactStore:
                     continue
                 dest = self._p("quarantine", stamp, artifact_id)
                 self.fs.makedirs(posixpath.dirname(dest), exist_ok=True)
-                if self.local:
-                    os.rename(p, dest)
-                else:
-                    self.fs.mv(p, dest, recursive=True)
+                self._move_tree(p, dest)
                 result.quarantined.append(dest)
         return result
 
@@ -1216,5 +1249,13 @@ class ArtifactStore:
             return os.stat(path).st_mtime
         try:
             return self.fs.modified(path).timestamp()
-        except (NotImplementedError, OSError, FileNotFoundError):
-            return 0.0  # pseudo-directories on object stores have no time; treat as old
+        except (NotImplementedError, OSError):
+            pass
+        # A pseudo-directory of an object store has no time of its own: that of its newest key (a
+        # write in progress has just put one there), or old when it holds none.
+        newest = 0.0
+        with contextlib.suppress(NotImplementedError, OSError):
+            for f in self.fs.find(path):
+                with contextlib.suppress(NotImplementedError, OSError):
+                    newest = max(newest, self.fs.modified(f).timestamp())
+        return newest

@@ -1,0 +1,200 @@
+"""A home on an object store (S3, served by a local moto server) or a shared path given as a file:// URL.
+
+Registration commits every object under its final key and writes the sidecar last: a reader never
+sees an artifact without all its files, and a writer killed before its sidecar leaves nothing that
+counts as an artifact. Ids are those a local home gives the same content; the catalogue (kept in the
+local cache for a remote home) lists the lineage and is rebuilt from the store alone.
+"""
+
+import json
+import logging
+import os
+import uuid
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("moto.server")
+pytest.importorskip("s3fs")
+boto3 = pytest.importorskip("boto3")
+
+from typer.testing import CliRunner  # noqa: E402
+
+from artifacts import catalogue as catalogue_mod  # noqa: E402
+from artifacts.api import ArtifactsAPI  # noqa: E402
+from artifacts.store import ArtifactStore  # noqa: E402
+from flows.cli import app  # noqa: E402
+
+TABLES = ["artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs"]
+
+
+@pytest.fixture(scope="module")
+def s3_endpoint():
+    """A moto S3 server on loopback; botocore (hence s3fs) finds it through AWS_ENDPOINT_URL."""
+    import s3fs
+    from moto.server import ThreadedMotoServer
+
+    logging.getLogger("werkzeug").setLevel(logging.WARNING)
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    env = {
+        "AWS_ENDPOINT_URL": f"http://{host}:{port}",
+        "AWS_ACCESS_KEY_ID": "testing",
+        "AWS_SECRET_ACCESS_KEY": "testing",
+        "AWS_DEFAULT_REGION": "us-east-1",
+    }
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    s3fs.S3FileSystem.clear_instance_cache()
+    try:
+        yield env["AWS_ENDPOINT_URL"]
+    finally:
+        s3fs.S3FileSystem.clear_instance_cache()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        server.stop()
+
+
+@pytest.fixture(params=["s3", "file"])
+def home(request, tmp_path, monkeypatch):
+    """A fresh home: s3://<new bucket>/home, or file:///<tmp>/shared/home."""
+    monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(catalogue_mod, "SETTLE_NS", 0)
+    if request.param == "file":
+        return f"file://{tmp_path / 'shared' / 'home'}"
+    request.getfixturevalue("s3_endpoint")
+    bucket = f"capvector-{uuid.uuid4().hex[:12]}"
+    boto3.client("s3").create_bucket(Bucket=bucket)
+    return f"s3://{bucket}/home"
+
+
+def tables(api: ArtifactsAPI) -> dict[str, list]:
+    return {t: api.query(f"SELECT * FROM {t} ORDER BY ALL").astype(str).values.tolist() for t in TABLES}
+
+
+def checkpoint_dir(root: Path) -> Path:
+    """A sharded-checkpoint-like folder: an index, two shards and a config in a subfolder."""
+    (root / "meta").mkdir(parents=True)
+    (root / "model.safetensors.index.json").write_text('{"weight_map": {"a": "model-00001.safetensors"}}')
+    (root / "model-00001.safetensors").write_bytes(os.urandom(4096))
+    (root / "model-00002.safetensors").write_bytes(b"\0" * 70_000)
+    (root / "meta" / "config.json").write_text('{"hidden": 8}')
+    return root
+
+
+def register_all(api: ArtifactsAPI, data: Path, ckpt: Path) -> dict[str, str]:
+    ids = {"data": api.register_file(data, "dataset", "demos").id}
+    ids["ckpt"] = api.register_dir(ckpt, "checkpoint", "theta_pt", parents=[(ids["data"], "data")]).id
+    ids["eval"] = api.register_json({"success": [1, 0, 1]}, "metrics", "eval pt").id
+    ids["report"] = api.register_json(
+        {"note": "ok"}, "report", "r", parents=[(ids["ckpt"], "checkpoint"), (ids["eval"], "evaluation")]
+    ).id
+    return ids
+
+
+def test_register_read_list_rebuild(home, tmp_path):
+    data = tmp_path / "demos.bin"
+    data.write_bytes(os.urandom(10_000))
+    ckpt = checkpoint_dir(tmp_path / "ckpt")
+    api = ArtifactsAPI(home)
+    assert not api.store.local or home.startswith("file://")
+    ids = register_all(api, data, ckpt)
+    # the same content in a plain local home gets the same ids
+    assert register_all(ArtifactsAPI(tmp_path / "local_home"), data, ckpt) == ids
+
+    store = api.store
+    assert sorted(store.iter_ids()) == sorted(ids.values())
+    assert store.path(ids["data"]).read_bytes() == data.read_bytes()
+    local_ckpt = store.path(ids["ckpt"])
+    for f in ckpt.rglob("*"):
+        if f.is_file():
+            assert (local_ckpt / f.relative_to(ckpt)).read_bytes() == f.read_bytes()
+    assert store.read_bytes(ids["ckpt"], member="meta/config.json") == b'{"hidden": 8}'
+    assert store.open_json(ids["eval"]) == {"success": [1, 0, 1]}
+    assert all(store.audit(i).status == "ok" for i in ids.values())
+    if not store.local:  # nothing left in staging, nothing but objects and sidecars
+        assert store.fs.find(store._p("tmp")) == []
+
+    # the catalogue lists them with their lineage
+    fresh = ArtifactsAPI(home)
+    rows = fresh.query("SELECT id, kind, name FROM artifacts ORDER BY name")
+    assert sorted(rows["id"]) == sorted(ids.values())
+    lineage = {(n.id, tuple(n.roles)) for n in fresh.ancestors(ids["report"])}
+    assert lineage == {
+        (ids["ckpt"], ("checkpoint",)),
+        (ids["eval"], ("evaluation",)),
+        (ids["data"], ("checkpoint", "data")),  # the roles along the path
+    }
+
+    # `capvector catalogue rebuild` from the store alone gives the same rows
+    before = tables(fresh)
+    runner = CliRunner()
+    result = runner.invoke(app, ["--home", home, "catalogue", "rebuild", "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["artifacts"] == len(ids) and report["corrupt"] == []
+    assert tables(ArtifactsAPI(home)) == before
+
+
+def test_killed_before_sidecar_leaves_no_artifact(home, tmp_path, monkeypatch):
+    api = ArtifactsAPI(home)
+    store = api.store
+    base = api.register_json({"base": 1}, "dataset", "base").id
+    ckpt = checkpoint_dir(tmp_path / "ckpt")
+    real_write_small = ArtifactStore._write_small
+
+    def killed(self, dst, data):
+        if dst.startswith(self._p("objects")):
+            raise KeyboardInterrupt("killed between the objects and the sidecar")
+        return real_write_small(self, dst, data)
+
+    monkeypatch.setattr(ArtifactStore, "_write_small", killed)
+    with pytest.raises(KeyboardInterrupt):
+        api.register_dir(ckpt, "checkpoint", "theta", parents=[(base, "data")])
+    with pytest.raises(KeyboardInterrupt):
+        api.register_json({"late": 1}, "report", "late")
+    monkeypatch.setattr(ArtifactStore, "_write_small", real_write_small)
+
+    # the objects were written under their final keys; no reader counts them as artifacts
+    fresh = ArtifactStore(store.url, cache_dir=tmp_path / "cache2")
+    objects = store._p("objects") + "/"
+    keys = [p[len(objects) :].split("/") for p in store.fs.find(store._p("objects"))]
+    written = {k[1] for k in keys if len(k) > 2}  # objects/<shard>/<id>/<member...>
+    assert len(written - {base}) == 2  # the checkpoint's files and the late report's are there
+    assert list(fresh.iter_ids()) == [base]
+    assert ArtifactsAPI(home).query("SELECT id FROM artifacts")["id"].tolist() == [base]
+    result = CliRunner().invoke(app, ["--home", home, "catalogue", "rebuild", "--json"])
+    assert result.exit_code == 0 and json.loads(result.stdout)["artifacts"] == 1
+
+    # registering the same content again commits it over the leftovers
+    again = api.register_dir(ckpt, "checkpoint", "theta", parents=[(base, "data")])
+    assert store.audit(again.id).status == "ok"
+    assert (store.path(again.id) / "meta" / "config.json").read_text() == '{"hidden": 8}'
+    # gc leaves a young leftover alone (an object store's prefix is as old as its newest key: it may
+    # be a write in progress), moves an old one aside (never deletes it); the artifacts stay
+    young = store.gc()
+    assert (young.removed, young.quarantined) == ([], [])
+    gc = store.gc(older_than_s=0)
+    assert len(gc.quarantined) == 1 and gc.quarantined[0].rsplit("/", 1)[-1] not in (base, again.id)
+    assert sorted(store.iter_ids()) == sorted([base, again.id])
+    assert store.fs.find(gc.quarantined[0])  # the bytes are still there, under quarantine/
+
+
+def test_cli_import_then_list(home, tmp_path):
+    import numpy as np
+    from safetensors.numpy import save_file
+
+    path = tmp_path / "theta.safetensors"
+    save_file({"w": np.arange(12, dtype=np.float32).reshape(3, 4)}, str(path))
+    runner = CliRunner()
+    result = runner.invoke(app, ["import", str(path), "--home", home, "--name", "theta_ext"])
+    assert result.exit_code == 0, (result.output, result.exception)
+    artifact_id = result.stdout.strip().splitlines()[-1]
+    listed = runner.invoke(app, ["artifacts", "list", "--home", home, "--json"])
+    assert listed.exit_code == 0, listed.output
+    assert [(r["id"], r["name"]) for r in json.loads(listed.stdout)] == [(artifact_id, "theta_ext")]
+    assert ArtifactStore(f"{home}/store").path(artifact_id).read_bytes() == path.read_bytes()
