@@ -246,7 +246,7 @@ def _preconditions(
             claim=f"θ_meta is not worse than θ_pt before downstream training (D_ext validation goals; "
             f"CI above −{margin:g} points)",
             holds=not_worse,
-            detail=merged.summary() if merged else "not measured",
+            detail=merged.summary() if merged else "not measured (θ_meta is merged after the gate)",
             comparison=merged,
         )
     )
