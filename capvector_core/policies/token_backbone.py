@@ -80,7 +80,8 @@ class TokenBackboneConfig(PolicyConfig):
     action_dim: int = Field(4, gt=0, description="size of one action (Meta-World: Δxyz and gripper)")
     obs_transform: ObsTransformConfig = Field(
         default_factory=ObsTransformConfig,
-        description="fixed map of the standardized state before the state tokens (capvector_core.obs_transforms)",
+        description="fixed map of the standardized state before the state tokens "
+        "(capvector_core.obs_transforms)",
     )
 
     @field_validator("stem_channels")
@@ -102,7 +103,9 @@ class TokenBackboneConfig(PolicyConfig):
                     "(each stem conv halves the image)"
                 )
         if self.obs_transform.active and self.obs_mode != "state":
-            raise ValueError(f"obs_transform {self.obs_transform.kind!r} maps the state: obs_mode must be 'state'")
+            raise ValueError(
+                f"obs_transform {self.obs_transform.kind!r} maps the state: obs_mode must be 'state'"
+            )
         if self.state_tokens == "grouped" and self.state_dim != 39 and not self.obs_transform.active:
             raise ValueError(
                 f"state_dim ({self.state_dim}) must be 39 with state_tokens='grouped' (Meta-World layout); "
