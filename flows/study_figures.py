@@ -56,7 +56,7 @@ def plot_forest(report: StudyReport, path: Path) -> Path | None:
     rows = [c for c in report.comparisons if c.budget == ENDPOINT]
     if not rows:
         return None
-    fig, ax = plt.subplots(figsize=(6.4, 0.5 * len(rows) + 1.4))
+    fig, ax = plt.subplots(figsize=(7.2, 0.5 * len(rows) + 1.8))
     for y, c in enumerate(reversed(rows)):
         colour = "#c44e52" if c.arm == "capvector" else "#4c72b0"
         if c.testable:
@@ -67,7 +67,7 @@ def plot_forest(report: StudyReport, path: Path) -> Path | None:
     ax.axvline(0, color="black", lw=0.8)
     labels = [f"{NAMES.get(c.arm, c.arm)} − {NAMES.get(c.baseline, c.baseline)}" for c in reversed(rows)]
     ax.set_yticks(range(len(rows)), labels, fontsize=8)
-    ax.set_xlabel("difference at the primary endpoint (points); dotted: ±MDD; x: df < 2 or no variance")
+    ax.set_xlabel("difference at the primary endpoint (points)\ndotted: ±MDD; ×: df < 2 or no variance")
     ax.set_title("Paired differences, 95 % CI", fontsize=10)
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
@@ -93,7 +93,7 @@ def plot_per_task(report: StudyReport, path: Path) -> Path | None:
     ax.set_ylabel("success at the endpoint (%)")
     ax.set_ylim(0, 100)
     ax.set_title("Per task: mean success over the endpoint's budgets", fontsize=10)
-    ax.legend(fontsize=7, ncol=min(4, len(arms)))
+    ax.legend(fontsize=7, ncol=min(4, len(arms)), loc="upper center", bbox_to_anchor=(0.5, -0.3))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
