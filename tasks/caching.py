@@ -35,7 +35,6 @@ import hashlib
 import json
 import os
 import tempfile
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -247,20 +246,9 @@ def index_problems(home: str, api: Any) -> list[tuple[str, str]]:
 
 def warn(line: str) -> None:
     """One warning line on stderr (also when progress is quiet) and in the run's log file."""
-    from tasks.progress import LOG_FILE_ENV
+    from tasks.progress import emit
 
-    data = f"{time.strftime('%H:%M:%S')} warning: {line}\n".encode()
-    try:
-        os.write(2, data)
-    except OSError:
-        pass
-    log = os.environ.get(LOG_FILE_ENV)
-    if log:
-        fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        try:
-            os.write(fd, data)
-        finally:
-            os.close(fd)
+    emit(f"warning: {line}", always=True)
 
 
 @contextmanager

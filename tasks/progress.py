@@ -27,12 +27,13 @@ def quiet() -> bool:
     return os.environ.get(QUIET_ENV, "") not in ("", "0")
 
 
-def emit(line: str) -> None:
-    """One progress line, time-stamped, to the terminal (unless quiet), to the run's log file and,
-    inside a Prefect flow or task run, to its logs (the UI's Logs tab)."""
+def emit(line: str, always: bool = False) -> None:
+    """One progress line, time-stamped, to the terminal (unless quiet; `always`: a warning, shown
+    anyway), to the run's log file and, inside a Prefect flow or task run, to its logs (the UI's Logs
+    tab)."""
     _to_prefect(line)
     data = f"{time.strftime('%H:%M:%S')} {line}\n".encode()
-    if not quiet():
+    if always or not quiet():
         try:
             os.write(2, data)
         except OSError:  # no stderr (a daemon): the log file still has it
