@@ -115,6 +115,15 @@ class _Study:
         """The id of the checkpoint a run kept after `budget` steps (waits for the run)."""
         return snapshots_of(self.workspace, resolve(checkpoint))[budget]
 
+    def train_draw_arm(
+        self, stage: dict[str, Any], arm: str, d: int, seed: int, step: Any, selection: Any = None
+    ) -> Any:
+        """A compared run of an arm that depends on draw d (its name carries the draw: unique)."""
+        label = f"downstream {arm} draw {d} seed {seed}"
+        return submit_arm(
+            self.steps, self.cfg, stage, arm, seed, label=label, selection=selection, step_config=step
+        )
+
     def validate_curve(self, run: Any, what: str) -> list[Any]:
         """A downstream run's validation evaluations at every curve budget (its endpoint's parts)."""
         return [
@@ -342,14 +351,8 @@ def _run_study(study: _Study) -> dict[str, Any]:
                 stage["auxiliary" if arm == "sft_from_ao" else "standard"], arm, d, f"draw {d} {arm} start"
             )
             for seed in cfg.seeds:
-                runs[arm, d, seed] = submit_arm(
-                    study.steps,
-                    cfg,
-                    stage,
-                    arm,
-                    seed,
-                    label=f"downstream {arm} draw {d} seed {seed}",  # names are unique in a study
-                    step_config=cfg.study_downstream(arm, seed),
+                runs[arm, d, seed] = study.train_draw_arm(
+                    stage, arm, d, seed, cfg.study_downstream(arm, seed)
                 )
     study.test_runs({k: v for k, v in runs.items() if k[0] in GATE_ARMS})
     _held_out_losses(study, draws, data["heldout"])
@@ -414,16 +417,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
             scale = None if arm == "meta_sft" else best["lambda_scale"]
             for seed in cfg.seeds:
                 step = cfg.study_downstream(arm, seed, lambda_scale=scale)
-                runs[arm, d, seed] = submit_arm(
-                    study.steps,
-                    cfg,
-                    stage,
-                    arm,
-                    seed,
-                    label=f"downstream {arm} draw {d} seed {seed}",
-                    selection=grid_selection,
-                    step_config=step,
-                )
+                runs[arm, d, seed] = study.train_draw_arm(stage, arm, d, seed, step, grid_selection)
     study.test_runs({k: v for k, v in runs.items() if k[0] in rest})
     report = study.analyse("final", _design(cfg, chosen_values))
     return {"report": report, "selections": _selections(study)}

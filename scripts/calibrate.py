@@ -73,6 +73,22 @@ def cached_demos(config: DemoConfig, work: Path) -> DemoDataset:
     return dataset
 
 
+def pretrain_policy(policy_config: dict, demos: DemoDataset, steps: int, run_dir: Path) -> Path:
+    """θ_pt for a pilot (seed 0, the study presets' pretraining settings); resumes from run_dir."""
+    torch.manual_seed(0)
+    policy = build_policy(policy_config, device="cpu")
+    config = TrainConfig(
+        steps=steps,
+        batch_size=64,
+        lr=1e-3,
+        warmup_steps=100,
+        checkpoint_every=500,
+        num_threads=1,
+        device="cpu",
+    )
+    return train(policy, demos, config, run_dir).weights_path
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, default=Path("capvector_home/calibration"))
@@ -107,19 +123,9 @@ def main() -> None:
         DemoConfig(tasks=args.candidates, episodes_per_task=args.episodes, horizon=500, workers=2), args.work
     )
     print(f"demos: {time.perf_counter() - start:.0f}s, failures {down.meta.failures}", flush=True)
-    torch.manual_seed(0)
-    policy = build_policy(policy_config, device="cpu")
-    pt_run = args.work / f"pretrain-{args.transform}"
-    pretrain = TrainConfig(
-        steps=args.pretrain_steps,
-        batch_size=64,
-        lr=1e-3,
-        warmup_steps=100,
-        checkpoint_every=500,
-        num_threads=1,
-        device="cpu",
+    pt_path = pretrain_policy(
+        policy_config, pre, args.pretrain_steps, args.work / f"pretrain-{args.transform}"
     )
-    pt_path = train(policy, pre, pretrain, pt_run).weights_path
     evaluation = EvalConfig(
         tasks=args.candidates,
         episodes_per_task=args.goals,

@@ -21,9 +21,9 @@ import torch
 
 from capvector_core.demos import UNIT_SEEDS, DemoConfig
 from capvector_core.obs_transforms import ObsTransformConfig
-from capvector_core.policy import build_policy, load_policy
+from capvector_core.policy import load_policy
 from capvector_core.trainer import AuxConfig, TrainConfig, train
-from scripts.calibrate import PRETRAIN, cached_demos
+from scripts.calibrate import PRETRAIN, cached_demos, pretrain_policy
 from tasks.held_out_loss import held_out_action_loss
 
 
@@ -56,18 +56,8 @@ def main() -> None:
         transform = transform if freq else ObsTransformConfig()
         variant = f"f{freq:g}" + (f"-hide-{'-'.join(args.aliased)}" if args.hide_aliased and freq else "")
         policy_config = {"obs_mode": "state", "d_model": 64, "n_layers": 2, "n_heads": 4, "chunk_size": 8}
-        torch.manual_seed(0)
-        policy = build_policy({**policy_config, "obs_transform": transform.model_dump()}, device="cpu")
-        pretrain = TrainConfig(
-            steps=1500,
-            batch_size=64,
-            lr=1e-3,
-            warmup_steps=100,
-            checkpoint_every=500,
-            num_threads=1,
-            device="cpu",
-        )
-        pt = train(policy, pre, pretrain, args.work / f"pretrain-{variant}").weights_path
+        config = {**policy_config, "obs_transform": transform.model_dump()}
+        pt = pretrain_policy(config, pre, 1500, args.work / f"pretrain-{variant}")
         for arm in ["sft", *args.arms]:
             name, _, weight = arm.partition(":")
             aux = None if name == "sft" else AuxConfig(name=name, weight=float(weight))
