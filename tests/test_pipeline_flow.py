@@ -110,7 +110,8 @@ def test_changing_a_downstream_setting_reruns_only_the_steps_below(smoke_home):
     assert set(changed["checkpoints"].values()).isdisjoint(ids["checkpoints"].values())
     ran = {name for name, state in states.items() if state != "Cached"}
     assert ran and all(n.startswith(("downstream", "evaluate", "report")) for n in ran), ran
-    assert {n for n, s in states.items() if s == "Cached"} >= {"pretrain θ_pt", "capability vector γ"}
+    # task-run names spell Greek letters in ASCII (the Prefect UI's graph drops them)
+    assert {n for n, s in states.items() if s == "Cached"} >= {"pretrain theta_pt", "capability vector gamma"}
 
 
 def test_a_cache_hit_whose_artifact_vanished_recomputes_it(smoke_home):
@@ -120,8 +121,8 @@ def test_a_cache_hit_whose_artifact_vanished_recomputes_it(smoke_home):
     if os.path.exists(api.store.object_path(ids["vector"])):
         os.remove(api.store.object_path(ids["vector"]))
     again, states = _run(home)
-    assert states["capability vector γ"] == "Completed"
-    assert states["pretrain θ_pt"] == "Cached"
+    assert states["capability vector gamma"] == "Completed"
+    assert states["pretrain theta_pt"] == "Cached"
     assert again["vector"] == ids["vector"]  # same inputs, same bytes, same id
     api.path(ids["vector"], verify=True)  # restored and intact
 
