@@ -165,7 +165,7 @@ def test_a_gate_that_fails_stops_the_study_and_says_why(study_home):
     assert report.design.stage == "gate" and "untestable" in report.gate
     assert set(report.final_checkpoints) <= {"sft", "aux", "sft_from_ao", "sft_from_ft"}
     assert "α and λ" not in " ".join(gated["selections"])
-    assert "Gate: the question is untestable here" in gated["markdown"]
+    assert "Gate: the question is untestable here" in Path(gated["report_file"]).read_text()
 
 
 def test_study_presets_are_checked_before_anything_runs(tmp_path):
