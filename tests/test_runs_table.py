@@ -302,7 +302,7 @@ def test_runs_on_a_real_home(smoke_home, tmp_path):
     assert by_id[ids["checkpoints"]["capvector/seed0"]]["alpha"] is not None
 
     out = tmp_path / "export"
-    run_cli("export", str(out), home=home)
+    run_cli("export", str(out), *protocol, home=home)
     con = duckdb.connect()
     [(n_eps,)] = con.execute(f"SELECT count(*) FROM read_parquet('{out / 'episodes.parquet'}')").fetchall()
     _, [(want,)] = api.query_rows("SELECT sum(n_episodes) FROM eval_tasks")
