@@ -25,10 +25,9 @@ def describe(model: BaseModel, prefix: str = "") -> Iterator[tuple[str, Any, str
             yield from describe(value, f"{path}.")
             continue
         text = info.description or _docstring_line(type(model), name)
-        dumped = value.model_dump(mode="json") if isinstance(value, BaseModel) else value
-        if isinstance(dumped, list):
-            dumped = [v.model_dump(mode="json") if isinstance(v, BaseModel) else v for v in dumped]
-        yield path, dumped, text
+        if isinstance(value, list):
+            value = [v.model_dump(mode="json") if isinstance(v, BaseModel) else v for v in value]
+        yield path, value, text
 
 
 def _docstring_line(cls: type, field: str) -> str:

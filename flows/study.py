@@ -27,6 +27,7 @@ from typing import Any
 
 from prefect import flow
 
+from flows.config import ARMS
 from flows.pipeline import step_runner, submit_arm
 from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
@@ -91,9 +92,7 @@ def study_steps(cfg: StudyConfig) -> int:
 
 def _start_kind(arm: str) -> str:
     """Which checkpoint an arm's run starts from (runs starting alike share their budget-0 test)."""
-    return {"capvector": "meta", "meta_sft": "meta", "null_capvector": "null_meta"}.get(
-        arm, {"sft_from_ao": "auxiliary", "sft_from_ft": "standard"}.get(arm, "pretrained")
-    )
+    return ARMS[arm].init
 
 
 class _Study:

@@ -23,15 +23,13 @@ class Adapter:
     """Full fine-tuning: every parameter trains, nothing to save besides the weights."""
 
     name: ClassVar[str] = "full"
+    section: ClassVar[str | None] = None
+    """The `TrainStepConfig` field holding this form's settings (None: it needs none)."""
     snapshots: ClassVar[bool] = True
     """Whether a run keeps its weights at intermediate budgets (a merged adapter mid-run is not)."""
 
     def settings(self, step: Any) -> BaseModel | None:
-        """This form's config section of a `TrainStepConfig` (None: it needs none, or it is missing)."""
-        return None
-
-    def needs_settings(self) -> bool:
-        return False
+        return getattr(step, self.section) if self.section else None
 
     def apply(self, model: nn.Module, step: Any) -> None:
         """Turn the model into what trains (adapter layers, frozen base) before the optimizer sees it."""
@@ -54,13 +52,8 @@ class LoraAdapter(Adapter):
     """LoRA through peft: saved in peft's layout, then merged into the dense weights."""
 
     name = "lora"
+    section = "lora"
     snapshots = False
-
-    def settings(self, step: Any) -> BaseModel | None:
-        return step.lora
-
-    def needs_settings(self) -> bool:
-        return True
 
     def apply(self, model: nn.Module, step: Any) -> None:
         lora.apply_lora(model, step.lora)
@@ -79,9 +72,7 @@ class LoraSPAdapter(LoraAdapter):
     batches (an approximation: evaluation runs the adapter itself, tasks.trained_policy)."""
 
     name = "lora_sp"
-
-    def settings(self, step: Any) -> BaseModel | None:
-        return step.lora_sp
+    section = "lora_sp"
 
     def apply(self, model: nn.Module, step: Any) -> None:
         lora_sp.apply_lora_sp(model, step.lora_sp)

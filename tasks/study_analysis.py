@@ -92,6 +92,8 @@ class Precondition(BaseModel):
     claim: str
     holds: bool | None
     """True: shown; False: contradicted; None: not shown either way (the CI includes zero)."""
+    measured: bool = True
+    """False: the study did not measure it (an arm not run, a gate that stopped before it, one draw)."""
     detail_values: dict[str, float] = {}
     detail: str
     comparison: Comparison | None = None
@@ -216,6 +218,7 @@ def _preconditions(
             holds=_verdict(ext) if ext else None,
             detail=ext.summary() if ext else "not measured",
             comparison=ext,
+            measured=ext is not None,
         )
     )
     upper = next(
@@ -233,6 +236,7 @@ def _preconditions(
             holds=_verdict(upper) if upper else None,
             detail=upper.summary() if upper else "not run (arms sft_from_ao, sft_from_ft)",
             comparison=upper,
+            measured=upper is not None,
         )
     )
     merged = _compare(episodes_ext, "meta", "pt", 0, n_boot)
@@ -248,6 +252,7 @@ def _preconditions(
             holds=not_worse,
             detail=merged.summary() if merged else "not measured (θ_meta is merged after the gate)",
             comparison=merged,
+            measured=merged is not None,
         )
     )
     result.append(_reproducibility(workspace, inputs))
@@ -264,7 +269,9 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
         "the seed-noise vector ‖θ_ft^d − θ_ft^d′‖"
     )
     if len(vectors) < 2:
-        return Precondition(key="e", claim=claim, holds=None, detail="needs at least 2 γ draws")
+        return Precondition(
+            key="e", claim=claim, holds=None, detail="needs at least 2 γ draws", measured=False
+        )
     gammas = {d: _flat(Checkpoint(p)) for d, p in sorted(vectors.items())}
     names = sorted(next(iter(gammas.values())))
     fts = {d: _flat(Checkpoint(p), names) for d, p in sorted(standard.items())}

@@ -154,8 +154,7 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
     lines += _target(report, speed := seconds_per_step(workspace, report))
     lines += ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
     for p in report.preconditions:
-        unmeasured = p.detail.startswith(("not measured", "not run", "needs"))
-        outcome = "not measured" if unmeasured else VERDICT[p.holds]
+        outcome = VERDICT[p.holds] if p.measured else "not measured"
         lines.append(f"| ({p.key}) | {p.claim} | {outcome} | {p.detail} |")
     lines += ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
     for arm, baseline in (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("meta_sft", "sft")):

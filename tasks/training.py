@@ -78,7 +78,7 @@ class TrainStepConfig(BaseModel):
     @model_validator(mode="after")
     def _adapter_config_present(self) -> TrainStepConfig:
         form = ADAPTERS[self.adapter]
-        if form.needs_settings() and form.settings(self) is None:
+        if form.section and form.settings(self) is None:
             raise ValueError(f"adapter {self.adapter!r} needs a `{self.adapter}` config")
         return self
 

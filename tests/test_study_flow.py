@@ -163,6 +163,7 @@ def test_a_gate_that_fails_stops_the_study_and_says_why(study_home):
     ws = Workspace(home)
     report = StudyReport.model_validate(ws.api.store.open_json(gated["report"]))
     assert report.design.stage == "gate" and "untestable" in report.gate
+    assert not next(p for p in report.preconditions if p.key == "d").measured  # θ_meta never merged
     assert set(report.final_checkpoints) <= {"sft", "aux", "sft_from_ao", "sft_from_ft"}
     assert "α and λ" not in " ".join(gated["selections"])
     assert "Gate: the question is untestable here" in Path(gated["report_file"]).read_text()
