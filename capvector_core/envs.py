@@ -14,7 +14,7 @@ import copy
 import functools
 import os
 import warnings
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 # Offscreen rendering needs a GL platform chosen before mujoco is imported; EGL works headless (the
 # user's own MUJOCO_GL wins).
@@ -23,13 +23,13 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 import mujoco  # noqa: E402
 import numpy as np
-from metaworld.env_dict import ALL_V3_ENVIRONMENTS
-from metaworld.policies import ENV_POLICY_MAP
-from metaworld.policies.policy import Policy
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+if TYPE_CHECKING:
+    from metaworld.policies.policy import Policy
+
 from capvector_core.depth_targets import PinholeCamera, patch_xyz
-from capvector_core.metaworld_tasks import INSTRUCTIONS, validate_task_names
+from capvector_core.metaworld_tasks import INSTRUCTIONS, check_against_metaworld, validate_task_names
 
 CAMERAS = ("topview", "corner", "corner2", "corner3", "corner4", "behindGripper", "gripperPOV")
 STATE_DIM = 39
@@ -168,6 +168,9 @@ def _initialize_from_cache(self: Any) -> tuple[mujoco.MjModel, mujoco.MjData]:
 
 @functools.cache
 def _env_class(task: str) -> type:
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS  # here, not at import: configs validate without it
+
+    check_against_metaworld()
     base = ALL_V3_ENVIRONMENTS[task]
     return type(base.__name__, (base,), {"_initialize_simulation": _initialize_from_cache})
 
@@ -374,7 +377,10 @@ class MetaWorldEnv:
 @functools.cache
 def expert_policy(task: str) -> Policy:
     """Meta-World's scripted expert for `task` (stateless: it reads only the current state)."""
+    from metaworld.policies import ENV_POLICY_MAP
+
     validate_task_names([task])
+    check_against_metaworld()
     return ENV_POLICY_MAP[task]()
 
 

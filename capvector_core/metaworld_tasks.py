@@ -1,16 +1,15 @@
 """The 50 Meta-World v3 tasks: names, instructions in words, difficulty groups, name validation.
 
-Task names come from metaworld itself (its v3 environment registry), so a metaworld upgrade that
-adds or renames a task fails the consistency check at import instead of silently drifting.
+The names are ours (the keys of INSTRUCTIONS), so validating a config does not import metaworld (0.4 s);
+the first environment or expert built checks them against metaworld's v3 registry
+(`check_against_metaworld`), so a metaworld upgrade that adds or renames a task fails loudly there
+instead of silently drifting.
 """
 
 from __future__ import annotations
 
 import difflib
-
-from metaworld.env_dict import ALL_V3_ENVIRONMENTS
-
-TASK_NAMES: tuple[str, ...] = tuple(sorted(ALL_V3_ENVIRONMENTS))
+import functools
 
 INSTRUCTIONS: dict[str, str] = {
     "assembly-v3": "pick up the nut and place it onto the peg",
@@ -71,19 +70,50 @@ DIFFICULTY_GROUPS: dict[str, tuple[str, ...]] = {
     "easy": tuple(
         f"{name}-v3"
         for name in (
-            "button-press", "button-press-topdown", "button-press-topdown-wall", "button-press-wall",
-            "coffee-button", "dial-turn", "door-close", "door-lock", "door-open", "door-unlock",
-            "drawer-close", "drawer-open", "faucet-close", "faucet-open", "handle-press",
-            "handle-press-side", "handle-pull", "handle-pull-side", "lever-pull", "plate-slide",
-            "plate-slide-back", "plate-slide-back-side", "plate-slide-side", "reach", "reach-wall",
-            "window-close", "window-open", "peg-unplug-side",
+            "button-press",
+            "button-press-topdown",
+            "button-press-topdown-wall",
+            "button-press-wall",
+            "coffee-button",
+            "dial-turn",
+            "door-close",
+            "door-lock",
+            "door-open",
+            "door-unlock",
+            "drawer-close",
+            "drawer-open",
+            "faucet-close",
+            "faucet-open",
+            "handle-press",
+            "handle-press-side",
+            "handle-pull",
+            "handle-pull-side",
+            "lever-pull",
+            "plate-slide",
+            "plate-slide-back",
+            "plate-slide-back-side",
+            "plate-slide-side",
+            "reach",
+            "reach-wall",
+            "window-close",
+            "window-open",
+            "peg-unplug-side",
         )
     ),
     "medium": tuple(
         f"{name}-v3"
         for name in (
-            "basketball", "bin-picking", "box-close", "coffee-pull", "coffee-push", "hammer",
-            "peg-insert-side", "push-wall", "soccer", "sweep", "sweep-into",
+            "basketball",
+            "bin-picking",
+            "box-close",
+            "coffee-pull",
+            "coffee-push",
+            "hammer",
+            "peg-insert-side",
+            "push-wall",
+            "soccer",
+            "sweep",
+            "sweep-into",
         )
     ),
     "hard": tuple(
@@ -91,30 +121,41 @@ DIFFICULTY_GROUPS: dict[str, tuple[str, ...]] = {
         for name in ("assembly", "hand-insert", "pick-out-of-hole", "pick-place", "push", "push-back")
     ),
     "very_hard": tuple(
-        f"{name}-v3"
-        for name in ("shelf-place", "disassemble", "stick-pull", "stick-push", "pick-place-wall")
+        f"{name}-v3" for name in ("shelf-place", "disassemble", "stick-pull", "stick-push", "pick-place-wall")
     ),
 }
 
 MT10_TASKS: tuple[str, ...] = (
-    "reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3", "drawer-close-v3",
-    "button-press-topdown-v3", "peg-insert-side-v3", "window-open-v3", "window-close-v3",
+    "reach-v3",
+    "push-v3",
+    "pick-place-v3",
+    "door-open-v3",
+    "drawer-open-v3",
+    "drawer-close-v3",
+    "button-press-topdown-v3",
+    "peg-insert-side-v3",
+    "window-open-v3",
+    "window-close-v3",
 )
 
 
-def _check_tables() -> None:
-    """Fail loudly at import if metaworld's task list and our tables disagree."""
-    names = set(TASK_NAMES)
+TASK_NAMES: tuple[str, ...] = tuple(sorted(INSTRUCTIONS))
+
+
+@functools.cache
+def check_against_metaworld() -> None:
+    """Fail loudly if metaworld's v3 tasks and our tables disagree (called where metaworld is loaded)."""
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    names = set(ALL_V3_ENVIRONMENTS)
     grouped = [t for group in DIFFICULTY_GROUPS.values() for t in group]
     if set(INSTRUCTIONS) != names or sorted(grouped) != sorted(names) or not set(MT10_TASKS) <= names:
         raise RuntimeError(
             "capvector's Meta-World task tables do not match metaworld's v3 tasks: "
             f"missing instructions {sorted(names - set(INSTRUCTIONS))}, "
+            f"not in metaworld {sorted(set(INSTRUCTIONS) - names)}, "
             f"ungrouped {sorted(names - set(grouped))}, unknown {sorted(set(grouped) - names)}"
         )
-
-
-_check_tables()
 
 
 def validate_task_names(names: list[str] | tuple[str, ...]) -> list[str]:

@@ -18,6 +18,7 @@ from capvector_core.metaworld_tasks import (
     DIFFICULTY_GROUPS,
     INSTRUCTIONS,
     TASK_NAMES,
+    check_against_metaworld,
     difficulty,
     validate_task_names,
 )
@@ -30,6 +31,17 @@ def test_fifty_tasks_each_with_instruction_and_one_group():
     sizes = {k: len(v) for k, v in DIFFICULTY_GROUPS.items()}
     assert sizes == {"easy": 28, "medium": 11, "hard": 6, "very_hard": 5}
     assert difficulty("pick-place-v3") == "hard"
+
+
+def test_the_task_tables_match_metaworlds_registry_and_a_drift_fails_loudly(monkeypatch):
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    assert set(TASK_NAMES) == set(ALL_V3_ENVIRONMENTS)
+    check_against_metaworld.cache_clear()
+    monkeypatch.setitem(ALL_V3_ENVIRONMENTS, "new-task-v3", object)  # a metaworld upgrade adds a task
+    with pytest.raises(RuntimeError, match="new-task-v3"):
+        check_against_metaworld()
+    check_against_metaworld.cache_clear()
 
 
 def test_unknown_task_names_are_named_with_suggestions():
