@@ -28,8 +28,10 @@ ArtifactsAPI opens, calls it only when the store may have changed since the last
 fingerprint is the times of its directories (objects/, each objects/<shard>/, runs/), which move
 whenever a sidecar or run record is written or removed; about 1 ms for 10,000 artifacts. A fingerprint
 is recorded only once every one of those times is SETTLE_NS old, since a coarse filesystem clock could
-give a change made right after the listing the same time. A remote store has no directory times: it
-is listed at most every REMOTE_SYNC_INTERVAL_S.
+give a change made right after the listing the same time. A remote store has no directory times: every
+commit rewrites its change token (`changes`, one small object), read before listing; a store no writer
+has given a token is listed at most every REMOTE_SYNC_INTERVAL_S. Missing sidecars are read
+SIDECAR_READERS at a time (a remote read is a round trip: ~30 ms each, one after another).
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
@@ -85,6 +88,9 @@ _PROCESS_LOCKS_GUARD = threading.Lock()
 # A store fingerprint is trusted once its newest directory time is this old (coarse clocks: NFS, FAT).
 SETTLE_NS = 2 * 10**9
 REMOTE_SYNC_INTERVAL_S = 60.0
+# Parallel sidecar reads of a remote catch-up (threads: each read waits on a network round trip).
+SIDECAR_READERS_DEFAULT = 16
+SIDECAR_READERS = SIDECAR_READERS_DEFAULT
 SNAPSHOT_PREFIX = ".snapshot-"
 # A read-only query still running after this long moves to a snapshot (see `query`).
 DIRECT_READ_S = 0.25
@@ -360,12 +366,15 @@ def store_key(store: Any) -> str:
 
 def store_fingerprint(store: Any) -> StoreFingerprint | None:
     """The times of a local store's directories: they move whenever a sidecar or a run record is written,
-    replaced or removed (each is a rename in objects/<shard>/ or runs/). None for a remote store.
+    replaced or removed (each is a rename in objects/<shard>/ or runs/). A remote store: its change
+    token (one small read; ArtifactStore._note_change), None where no writer has set one yet (then a
+    listing every REMOTE_SYNC_INTERVAL_S is all there is).
 
     ctime as well as mtime: copies and restores can set a directory's mtime back, never its ctime.
     Settled: every time is SETTLE_NS older than the clock when the stat began."""
     if not store.local:
-        return None
+        token = store.change_token()
+        return None if token is None else StoreFingerprint(f"token {token}", True)
     now = time.time_ns()
     root = Path(store.root)
     digest = hashlib.sha256(str(root).encode())
@@ -672,15 +681,24 @@ class Catalogue:
     @staticmethod
     def _gather(store: Any, ids: Iterable[str]) -> tuple[list[tuple[ArtifactRecord, Doc]], list[str]]:
         """Records and indexed documents of `ids`, read and hash-checked; failures listed, not indexed."""
-        items, corrupt = [], []
-        for artifact_id in ids:
+
+        def read(artifact_id: str) -> tuple[ArtifactRecord, Doc] | str | None:
             try:
                 record = store.get(artifact_id)
-                items.append((record, load_doc(store, record)))
+                return record, load_doc(store, record)
             except ArtifactNotFound:
-                continue  # removed since it was listed
+                return None  # removed since it was listed
             except (CorruptArtifact, ValueError):
-                corrupt.append(artifact_id)
+                return artifact_id
+
+        ids = list(ids)
+        if store.local or len(ids) < 2:
+            results = [read(i) for i in ids]
+        else:
+            with ThreadPoolExecutor(min(SIDECAR_READERS, len(ids))) as pool:
+                results = list(pool.map(read, ids))
+        items = [r for r in results if isinstance(r, tuple)]
+        corrupt = [r for r in results if isinstance(r, str)]
         return items, corrupt
 
     def _set_marker(self, con: duckdb.DuckDBPyConnection, key: str, fp: StoreFingerprint | None) -> tuple:

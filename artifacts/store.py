@@ -6,6 +6,8 @@ Layout under the root:
     tmp/<uuid>/                        staging; a killed writer leaves garbage only here
     runs/<flow_run_id>.json            flow-run records, so the catalogue can be rebuilt from the store
     quarantine/<time>/<id>/            objects without a sidecar that `gc` moved aside (never deleted)
+    changes                            remote stores: a token rewritten after every sidecar or run record
+                                       (a catalogue reads it, one small GET, to know whether to list)
 
 An artifact is visible only once its sidecar exists; an object directory without one is invisible.
 Locally an object directory is committed by one rename. An object store (S3, GCS, ...) has no
@@ -85,6 +87,7 @@ from artifacts.records import (
 
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+CHANGES = "changes"  # a remote store's change token (ArtifactStore._note_change)
 ParentLike = ParentRef | tuple[str, str] | tuple[str, str, dict[str, Any]]
 # artifact id -> {member path: sha256} the caller took while reading that artifact's files
 ParentHashes = Mapping[str, Mapping[str, str]]
@@ -589,6 +592,7 @@ class ArtifactStore:
             )
         )
         self._write_small(self.sidecar_path(artifact_id), sidecar)
+        self._note_change()
         return record
 
     def _committed_record(self, artifact_id: str) -> ArtifactRecord | None:
@@ -1186,6 +1190,23 @@ class ArtifactStore:
         """Create or update a run record (runs change state, so they are replaced, not content-addressed)."""
         self.fs.makedirs(self._p("runs"), exist_ok=True)
         self._write_small(self._run_path(run.flow_run_id), run.model_dump_json(indent=1).encode())
+        self._note_change()
+
+    def _note_change(self) -> None:
+        """A remote store's change token, rewritten after each commit (the sidecar or run record is
+        already there): a catalogue that read the token before listing sees a new one after any commit
+        its listing may have missed. A local store's directory times do this job (catalogue
+        .store_fingerprint). Each writer writes a fresh random token, so racing writers cannot
+        leave the one a reader saw."""
+        if not self.local:
+            self.fs.pipe_file(self._p(CHANGES), uuid.uuid4().hex.encode())
+
+    def change_token(self) -> str | None:
+        """A remote store's current change token; None before its first commit by this version."""
+        try:
+            return self.fs.cat_file(self._p(CHANGES)).decode()
+        except FileNotFoundError:
+            return None
 
     def iter_runs(self) -> Iterator[RunRecord]:
         for p in sorted(self.fs.glob(self._p("runs", "*.json"))):

@@ -198,3 +198,34 @@ def test_cli_import_then_list(home, tmp_path):
     assert listed.exit_code == 0, listed.output
     assert [(r["id"], r["name"]) for r in json.loads(listed.stdout)] == [(artifact_id, "theta_ext")]
     assert ArtifactStore(f"{home}/store").path(artifact_id).read_bytes() == path.read_bytes()
+
+
+def test_a_driver_sees_what_a_worker_committed_at_its_next_open_and_lists_only_after_a_change(
+    s3_endpoint, tmp_path, monkeypatch
+):
+    """Each machine keeps its own catalogue of a remote home. A worker's commits rewrite the store's
+    change token, so the driver's next open indexes them at once (before: up to 60 s of `0 rows`), and
+    an open after no commit reads the token alone: no listing."""
+    bucket = f"capvector-{uuid.uuid4().hex[:12]}"
+    boto3.client("s3").create_bucket(Bucket=bucket)
+    home = f"s3://{bucket}/home"
+    monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "driver-cache"))
+    driver = ArtifactsAPI(home)
+    base = driver.register_json({"base": 1}, "dataset", "base").id
+
+    monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "worker-cache"))  # another machine
+    worker = ArtifactsAPI(home)
+    made = [
+        worker.register_json({"i": i}, "metrics", f"eval {i}", parents=[(base, "data")]).id for i in range(3)
+    ]
+
+    monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "driver-cache"))
+    listings = []
+    real_iter_ids = ArtifactStore.iter_ids
+    monkeypatch.setattr(ArtifactStore, "iter_ids", lambda self: listings.append(1) or real_iter_ids(self))
+    again = ArtifactsAPI(home)
+    assert sorted(again.query("SELECT id FROM artifacts")["id"]) == sorted([base, *made])
+    assert {n.id for n in again.descendants(base)} == set(made)
+    assert len(listings) == 1
+    ArtifactsAPI(home)  # nothing committed since: the token alone answers
+    assert len(listings) == 1
