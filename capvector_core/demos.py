@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from multiprocessing import util as mp_util
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import mujoco
 import numpy as np
@@ -44,6 +44,7 @@ from capvector_core.envs import (
     ObsMode,
     expert_action,
 )
+from capvector_core.execution import ExecutionOnly
 from capvector_core.metaworld_tasks import INSTRUCTIONS, validate_task_names
 
 TRAIN_SEED_BASE = 0
@@ -81,7 +82,9 @@ class DemoConfig(BaseModel):
     image_size: int = Field(64, ge=16, le=256)
     horizon: int = Field(500, ge=1, le=500)
     seed_offset: int = Field(0, ge=0)
-    workers: int = Field(2, ge=1)
+    workers: Annotated[int, ExecutionOnly("units merge in (task, unit) order: the same data")] = Field(
+        2, ge=1
+    )
     patch_xyz: bool = False
     patch_grid: int = Field(4, ge=1, description="patches per image side for patch_xyz")
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 
@@ -18,3 +20,24 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     if resolved.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {device!r} requested but CUDA is not available here")
     return resolved
+
+
+def device_label(device: torch.device) -> str:
+    """`cpu`, or `cuda:N` with N filled in (a bare `cuda` is the current CUDA device)."""
+    if device.type == "cuda" and device.index is None:
+        return f"cuda:{torch.cuda.current_device()}"
+    return str(device)
+
+
+def run_environment(device: torch.device) -> dict[str, Any]:
+    """Where a computation runs, for its provenance: the device (resolved: never `auto`), the GPU's
+    name, torch's CPU thread count now, the torch build and whether CUDA was available."""
+    label = device_label(device)
+    return {
+        "device": label,
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "num_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "cuda_available": torch.cuda.is_available(),
+        "cuda_version": torch.version.cuda,
+    }

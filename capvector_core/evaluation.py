@@ -13,6 +13,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -34,6 +35,7 @@ from capvector_core.envs import (
     batch_observations,
     expert_policy,
 )
+from capvector_core.execution import ExecutionOnly
 from capvector_core.metaworld_tasks import validate_task_names
 
 ActionFn = Callable[[dict[str, np.ndarray], list[str]], np.ndarray]
@@ -54,7 +56,8 @@ class EvalConfig(BaseModel):
     camera: str = "corner2"
     image_size: int = Field(64, ge=16, le=256)
     execute_steps: int = Field(1, ge=1)
-    batch_size: int = Field(64, ge=1)  # envs stepped together (memory: one MjData each, one model per task)
+    # envs stepped together (memory: one MjData each, one model per task)
+    batch_size: Annotated[int, ExecutionOnly("records equal a one-env-at-a-time loop's")] = Field(64, ge=1)
     record_video: int = Field(0, ge=0, description="episodes per task recorded as GIFs (the first goals)")
 
     @field_validator("tasks")

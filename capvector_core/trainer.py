@@ -34,7 +34,7 @@ import shutil
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -42,14 +42,12 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from capvector_core.aux_objectives import AuxObjective, build_objective, get_objective
-from capvector_core.device import resolve_device
+from capvector_core.device import resolve_device, run_environment
+from capvector_core.execution import ExecutionOnly, execution_only_fields
 from capvector_core.policy import Policy, load_policy_weights, save_policy, save_tensors_atomic
 
 ExtraLoss = Callable[[nn.Module], torch.Tensor]
 _CKPT = re.compile(r"^step_(\d{8})$")
-# Fields allowed to differ on resume: they change neither the batches nor the schedule. (Another device
-# or thread count can change float rounding: bit-identical resume needs those to match as well.)
-_RESUME_FREE = {"checkpoint_every", "log_every", "num_threads", "device", "keep_checkpoints"}
 
 
 class AuxConfig(BaseModel):
@@ -105,16 +103,26 @@ class TrainConfig(BaseModel):
         description="seed of initialisation (from scratch, adapters), batch order and dropout; the pipeline "
         "replaces it downstream by each of `seeds` (a study also in extraction, by its draws)",
     )
-    checkpoint_every: int = Field(
-        500, gt=0, description="steps between resumable checkpoints; speed only, never the result"
+    checkpoint_every: Annotated[
+        int, ExecutionOnly("resume is exact: the weights are the same whenever checkpoints are written")
+    ] = Field(
+        500,
+        gt=0,
+        description="steps between resumable checkpoints; speed only, never the result (not in the cache "
+        "key)",
     )
     snapshot_steps: list[int] = Field(
         default_factory=list,
         description="budgets (0 < step < steps) at which the policy is also kept as it is then "
         "(success-vs-steps curves, early endpoints); a study sets them itself",
     )
-    keep_checkpoints: int = Field(
-        2, gt=0, description="newest resumable checkpoints kept on disk; older ones are deleted"
+    keep_checkpoints: Annotated[int, ExecutionOnly("disk use only: older checkpoints are only deleted")] = (
+        Field(
+            2,
+            gt=0,
+            description="newest resumable checkpoints kept on disk; older ones are deleted (not in the "
+            "cache key)",
+        )
     )
     log_every: int = Field(10, gt=0, description="steps per loss-curve row (mean loss terms, lr, grad norm)")
     aux: AuxConfig | None = Field(
@@ -127,13 +135,21 @@ class TrainConfig(BaseModel):
         None,
         description="set policy normalization stats from the data; None: only if the policy has none yet",
     )
-    device: str = Field(
-        "auto",
-        description="torch device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N; bit-identical "
-        "resume needs the same device",
+    device: Annotated[str, ExecutionOnly("where it trains: the same computation, up to float rounding")] = (
+        Field(
+            "auto",
+            description="torch device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N; not in the "
+            "cache key (the checkpoint's record says which device trained it); bit-identical resume needs "
+            "the same device",
+        )
     )
-    num_threads: int | None = Field(
-        None, gt=0, description="torch CPU threads of the run; null: torch's default; speed only"
+    num_threads: Annotated[
+        int | None, ExecutionOnly("how fast on a CPU: the same computation, up to float rounding")
+    ] = Field(
+        None,
+        gt=0,
+        description="torch CPU threads of the run; null: torch's default; speed only (not in the cache key; "
+        "the checkpoint's record has the count used)",
     )
 
     @model_validator(mode="after")
@@ -149,6 +165,12 @@ class TrainConfig(BaseModel):
         return self
 
 
+# Fields allowed to differ on resume: they change neither the batches nor the schedule. Those not in the
+# cache key (capvector_core.execution), and log_every (it changes only how the curve is averaged).
+# (Another device or thread count can change float rounding: bit-identical resume needs those to match.)
+_RESUME_FREE = set(execution_only_fields(TrainConfig)) | {"log_every"}
+
+
 class TrainResult(BaseModel):
     weights_path: Path
     aux_weights_path: Path | None
@@ -160,6 +182,8 @@ class TrainResult(BaseModel):
     samples_per_s: float
     final_loss: float
     snapshots: dict[int, Path] = {}  # step -> the policy's weights after that many steps
+    # where this invocation trained (capvector_core.device.run_environment): resolved device, threads, torch
+    execution: dict[str, Any] = {}
 
 
 def lr_at(step: int, config: TrainConfig) -> float:
@@ -346,6 +370,7 @@ def train(
     if config.num_threads:
         torch.set_num_threads(config.num_threads)
     device = resolve_device(config.device)
+    execution = run_environment(device)
     torch.manual_seed(config.seed)
 
     objective = None
@@ -476,6 +501,7 @@ def train(
         samples_per_s=done_steps * config.batch_size / elapsed if done_steps and elapsed > 0 else 0.0,
         final_loss=last_loss,
         snapshots={s: snapshot_path(run_dir, s) for s in sorted(snapshot_at)},
+        execution=execution,
     )
     (run_dir / "result.json").write_text(result.model_dump_json(indent=1))
     return result

@@ -2,7 +2,11 @@
 
 A step's *content key* is the sha256 of its kind (the task name), the ids (content hashes) of its input
 artifacts, its validated config and its step code hash (tasks.step_code): never paths, never Python
-object ids.
+object ids. A step that gives its config as a model (training, demo collection, evaluation) is keyed
+on `capvector_core.execution.result_config`: the config without the fields that only say where or how
+fast it runs (train.device, num_threads, checkpoint_every, keep_checkpoints; the demos' workers;
+evaluation's batch_size; that module says why each cannot change the result). So a run asked for on
+`cuda:0` is a hit for the same run trained on a CPU; the record says where it ran.
 
 `cached_step` keeps an index content key -> artifact id in the home directory; a step whose artifact
 is in the store and verifies is not recomputed (also after a killed flow or a deleted Prefect home),
@@ -41,8 +45,11 @@ from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel
+
 from artifacts.errors import ArtifactError
 from artifacts.home import is_local, local_cache_dir
+from capvector_core.execution import result_config
 from tasks.step_code import step_code
 from tasks.workspace import Workspace
 
@@ -99,13 +106,16 @@ def _record(outcome: str) -> None:
         outcomes.append(outcome)
 
 
-def content_key(kind: str, inputs: dict[str, str], config: dict[str, Any], module: str) -> str:
-    """`module`: the step's module; the hash of its import closure is the step code (tasks.step_code)."""
+def content_key(kind: str, inputs: dict[str, str], config: dict[str, Any] | BaseModel, module: str) -> str:
+    """`module`: the step's module; the hash of its import closure is the step code (tasks.step_code).
+
+    `config`: a validated model, keyed without its ExecutionOnly fields (see the module's docstring), or
+    a plain dict, hashed as it is."""
     payload = json.dumps(
         {
             "kind": kind,
             "inputs": dict(sorted(inputs.items())),
-            "config": config,
+            "config": result_config(config) if isinstance(config, BaseModel) else config,
             "step_code": step_code(module),
         },
         sort_keys=True,
@@ -275,7 +285,7 @@ def cached_step(
     workspace: Workspace,
     kind: str,
     inputs: dict[str, str],
-    config: dict[str, Any],
+    config: dict[str, Any] | BaseModel,
     produce: Callable[[str], str],
     step: str | None = None,
 ) -> str:

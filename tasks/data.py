@@ -32,7 +32,7 @@ def run_collect_demos(workspace: Workspace, step: str, config: dict[str, Any]) -
             )
         return record.id
 
-    return cached_step(workspace, "collect_demos", {}, config, produce)
+    return cached_step(workspace, "collect_demos", {}, demo_config, produce)
 
 
 @pipeline_task("collect_demos")

@@ -122,12 +122,12 @@ def _register(
 def run_evaluate(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     if "checkpoint" not in inputs:
         raise ValueError(f"step {step!r}: evaluate needs a 'checkpoint' input")
-    EvalConfig.model_validate(config)  # fail before any cache lookup on a bad protocol
+    eval_config = EvalConfig.model_validate(config)  # fail before any cache lookup on a bad protocol
     return cached_step(
         workspace,
         "evaluate",
         inputs,
-        config,
+        eval_config,
         lambda key: evaluate_checkpoint(workspace, step, inputs["checkpoint"], config, cache_key=key),
     )
 

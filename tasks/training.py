@@ -6,6 +6,12 @@ adapter, orthogonal regularizer) and the inputs (`data`, optional `init` checkpo
 merged), so vectors can be taken from any of them; its record keeps the loss curve and run summary,
 and a LoRA/LoRA-SP adapter is a separate artifact, its parent with role `adapter`. The checkpoint
 is registered last: it is the step's commit point.
+
+Where it trained is provenance, not part of the cache key (capvector_core.execution): the records of
+the checkpoint, its snapshots and its adapter hold `execution`, what the training invocation that
+finished the run used (capvector_core.device.run_environment): the resolved device (`cpu`, `cuda:0`,
+never `auto`), its name, torch's CPU thread count, the torch build and whether CUDA was available. A
+run resumed from another invocation's checkpoint says so in `summary.resumed_from_step`.
 """
 
 from __future__ import annotations
@@ -206,7 +212,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                     adapter_dir,
                     kind="adapter",
                     name=f"{step} adapter",
-                    config={"adapter": cfg.adapter, "summary": summary},
+                    config={"adapter": cfg.adapter, "summary": summary, "execution": result.execution},
                     parents=parents,
                     **meta,
                 )
@@ -217,7 +223,12 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                     path,
                     kind="checkpoint",
                     name=f"{step} @ {budget} steps",
-                    config={"train_step": cfg.model_dump(mode="json"), "budget": budget, "of_run": key},
+                    config={
+                        "train_step": cfg.model_dump(mode="json"),
+                        "budget": budget,
+                        "of_run": key,
+                        "execution": result.execution,
+                    },
                     parents=parents,
                     **meta,
                 )
@@ -226,6 +237,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                 "train_step": cfg.model_dump(mode="json"),
                 "cache_key": key,
                 "summary": summary,
+                "execution": result.execution,
                 "curve": _curve_rows(result.loss_curve_path),
                 "snapshots": snapshots,
             }
@@ -236,7 +248,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
         workspace.finish_run_dir(key)
         return checkpoint.id
 
-    return cached_step(workspace, "train", inputs, config, produce, step=step)
+    return cached_step(workspace, "train", inputs, cfg, produce, step=step)
 
 
 def snapshots_of(workspace: Workspace, checkpoint_id: str) -> dict[int, str]:
