@@ -229,3 +229,32 @@ def test_a_driver_sees_what_a_worker_committed_at_its_next_open_and_lists_only_a
     assert len(listings) == 1
     ArtifactsAPI(home)  # nothing committed since: the token alone answers
     assert len(listings) == 1
+
+
+def test_a_fresh_machine_finds_a_step_another_machine_computed(s3_endpoint, tmp_path, monkeypatch):
+    """The step cache's index lives beside each machine's catalogue; the artifacts record their cache
+    key in the store. A driver on another machine (its own CAPVECTOR_CACHE, no index entry), whose
+    catalogue was opened just before the worker computed the step, gets the artifact from the cache at
+    its next open instead of computing the step again (before the change token: recomputed for 60 s)."""
+    from tasks.caching import cached_step
+    from tasks.workspace import Workspace
+
+    bucket = f"capvector-{uuid.uuid4().hex[:12]}"
+    boto3.client("s3").create_bucket(Bucket=bucket)
+    home = f"s3://{bucket}/home"
+    computed = []
+
+    def produce(key: str, workspace: Workspace) -> str:
+        computed.append(key)
+        return workspace.api.register_json({"n": 1}, "metrics", "step", config={"cache_key": key}).id
+
+    def run_step(cache: str) -> str:
+        monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / cache))
+        workspace = Workspace(home)
+        return cached_step(workspace, "metrics", {}, {"n": 1}, lambda key: produce(key, workspace))
+
+    monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "driver"))
+    Workspace(home)  # the driver starts: its catalogue is caught up with an empty store
+    first = run_step("worker")
+    assert run_step("driver") == first
+    assert len(computed) == 1
