@@ -1,7 +1,9 @@
-"""`capvector catalogue sync|rebuild|verify|gc`: keep the DuckDB catalogue in step with the store.
+"""`capvector catalogue sync|rebuild|verify|gc`: keep the DuckDB catalogue in step with the store;
+`capvector catalogue housekeeping`: keep run logs and Prefect's run history bounded (flows.housekeeping).
 
 The store is the truth and the catalogue an index of it. Every command opens the catalogue without the
-automatic catch-up (artifacts.api), so `verify` reports what an open would have repaired.
+automatic catch-up (artifacts.api), so `verify` reports what an open would have repaired. `gc` removes
+what the store itself left over; `housekeeping` never looks at the store or the catalogue.
 """
 
 from __future__ import annotations
@@ -12,10 +14,12 @@ from typing import Annotated, Any
 import typer
 
 from flows.home import resolve_home
+from flows.housekeeping import KEEP_LOG_BYTES, KEEP_LOG_DAYS, KEEP_LOG_FILES, KEEP_RUN_DAYS, KEEP_RUNS
 
 catalogue_app = typer.Typer(
     no_args_is_help=True,
-    help="Keep the catalogue (an index, rebuildable) in step with the artifact store (the truth).",
+    help="Keep the catalogue (an index, rebuildable) in step with the artifact store (the truth); "
+    "`housekeeping` bounds run logs and Prefect's run history.",
 )
 
 HomeOption = Annotated[str | None, typer.Option("--home", help="capvector home (default: $CAPVECTOR_HOME)")]
@@ -104,7 +108,9 @@ def gc(
     """Remove store leftovers (staging) and rows of artifacts no longer stored; quarantine objects
     without a sidecar (never deleted; left in place when something names them as a parent).
 
-    Also the rows of run records no longer in the store and snapshot folders of killed readers."""
+    Also the rows of run records no longer in the store and snapshot folders of killed readers.
+
+    Old run logs and Prefect flow runs: `capvector catalogue housekeeping`."""
     report = _api(home).gc(older_than)
     if as_json:
         _echo_json(report.model_dump())
@@ -120,3 +126,101 @@ def gc(
         typer.echo(f"{title}: {len(items)}")
         for item in items:
             typer.echo(f"  {item}")
+
+
+HOUSEKEEPING_HELP = (
+    "Delete old run logs and old Prefect flow runs; artifacts, the store, the catalogue and the step "
+    "cache are never touched."
+    "\n\n"
+    "Logs: `*.log` files in <home>/logs (a remote home: its local cache folder), oldest first, until none "
+    "is older than --logs-older-than and at most --keep-logs files and --keep-log-mb remain; a log written "
+    "to in the last 10 minutes (a run still going) is always kept."
+    "\n\n"
+    "Runs: finished runs of capvector's flows (pipeline, study, sweep, evaluate, reevaluate) that ended "
+    "more than --runs-older-than days ago or are beyond the --keep-runs newest, with their task runs, "
+    "logs and UI artifacts, are deleted through Prefect's client: on the server at PREFECT_API_URL, else "
+    "on the embedded database in $PREFECT_HOME (a server is started for the call, ~10 s), which is then "
+    "VACUUMed. Prefect deletes events itself: its server removes those older than "
+    "PREFECT_SERVER_EVENTS_RETENTION_PERIOD (7 days) whenever it starts."
+)
+
+
+@catalogue_app.command(help=HOUSEKEEPING_HELP)
+def housekeeping(
+    logs_older_than: Annotated[
+        float, typer.Option("--logs-older-than", help="days: run logs older than this are deleted")
+    ] = KEEP_LOG_DAYS,
+    keep_logs: Annotated[int, typer.Option("--keep-logs", help="run logs kept at most (the newest)")] = (
+        KEEP_LOG_FILES
+    ),
+    keep_log_mb: Annotated[
+        float, typer.Option("--keep-log-mb", help="MB of run logs kept at most (the newest)")
+    ] = KEEP_LOG_BYTES / 2**20,
+    runs_older_than: Annotated[
+        float,
+        typer.Option(
+            "--runs-older-than", help="days: finished Prefect flow runs that ended before are deleted"
+        ),
+    ] = KEEP_RUN_DAYS,
+    keep_runs: Annotated[
+        int, typer.Option("--keep-runs", help="finished Prefect flow runs kept at most (the newest)")
+    ] = KEEP_RUNS,
+    logs: Annotated[bool, typer.Option("--logs/--no-logs", help="prune the home's run logs")] = True,
+    runs: Annotated[bool, typer.Option("--runs/--no-runs", help="prune Prefect's flow runs")] = True,
+    vacuum: Annotated[
+        bool, typer.Option("--vacuum/--no-vacuum", help="VACUUM the embedded Prefect database afterwards")
+    ] = True,
+    dry_run: Annotated[
+        bool, typer.Option("--dry-run", help="list what would be deleted; delete nothing")
+    ] = False,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Prune run logs (flows.housekeeping.prune_logs) and Prefect flow runs (prune_prefect_db)."""
+    from flows.housekeeping import prune_logs, prune_prefect_db
+
+    found: dict[str, Any] = {}
+    if logs:
+        found["logs"] = prune_logs(
+            resolve_home(home),
+            keep_days=logs_older_than,
+            keep_files=keep_logs,
+            keep_bytes=int(keep_log_mb * 2**20),
+            dry_run=dry_run,
+        ).as_dict()
+    if runs:
+        found["runs"] = prune_prefect_db(
+            older_than_days=runs_older_than, keep_runs=keep_runs, dry_run=dry_run, vacuum=vacuum
+        ).as_dict()
+    if as_json:
+        _echo_json(found)
+        return
+    verb = "would delete" if dry_run else "deleted"
+    if "logs" in found:
+        report = found["logs"]
+        typer.echo(
+            f"run logs in {report['folder']}: {verb} {len(report['deleted'])} "
+            f"({_mb(report['deleted_bytes'])}), kept {report['kept']} ({_mb(report['kept_bytes'])})"
+        )
+        for path in report["deleted"]:
+            typer.echo(f"  {path}")
+    if "runs" in found:
+        report = found["runs"]
+        typer.echo(
+            f"Prefect flow runs on {report['server']}: {verb} {len(report['deleted'])}, kept {report['kept']}"
+        )
+        for run in report["deleted"]:
+            typer.echo(f"  {run['end_time'][:19]}  {run['flow']:<10}  {run['state']:<9}  {run['name']}")
+        if report["logs_pending"]:
+            typer.echo(f"  {report['logs_pending']} of their log lines are still being deleted by the server")
+        if report["bytes_after"] is not None:
+            typer.echo(
+                f"database {report['database']}: {_mb(report['bytes_before'])} -> "
+                f"{_mb(report['bytes_after'])} (VACUUM {report['vacuum']})"
+            )
+        elif not dry_run:
+            typer.echo(f"VACUUM {report['vacuum']}")
+
+
+def _mb(n: int | None) -> str:
+    return "?" if n is None else f"{n / 2**20:.1f} MB"
