@@ -235,12 +235,13 @@ class _Run:
         self.step = 0
         self.train_seconds = 0.0
 
-    def save(self) -> None:
+    def save(self) -> Path:
+        """Write the checkpoint of this step (once) and return its folder."""
         root = self.run_dir / "checkpoints"
         root.mkdir(parents=True, exist_ok=True)
         final = root / f"step_{self.step:08d}"
         if final.exists():
-            return
+            return final
         tmp = root / f".tmp-step_{self.step:08d}"
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir()
@@ -264,6 +265,7 @@ class _Run:
         _fsync_dir(root)
         for _, old in _checkpoints(self.run_dir)[: -self.config.keep_checkpoints]:
             shutil.rmtree(old, ignore_errors=True)
+        return final
 
     def check_config(self, path: Path, saved: TrainConfig | None = None) -> None:
         """Refuse a checkpoint written under another TrainConfig (an error, not a lost file)."""
@@ -349,6 +351,9 @@ def _param_groups(params: list[nn.Parameter], weight_decay: float) -> list[dict]
 
 # report(done_steps, total_steps, detail): the caller decides where progress goes (tasks.progress)
 ProgressReport = Callable[[int, int, str], None]
+# on_checkpoint(step, folder): called once a resumable checkpoint is complete on disk (its loss curve
+# rows up to `step` are flushed too); e.g. tasks.scratch copies it off the machine
+CheckpointHook = Callable[[int, Path], None]
 
 
 def train(
@@ -358,11 +363,14 @@ def train(
     run_dir: str | Path,
     extra_losses: Mapping[str, ExtraLoss] | None = None,
     progress: ProgressReport | None = None,
+    on_checkpoint: CheckpointHook | None = None,
 ) -> TrainResult:
     """Train ``policy`` in place on ``dataset`` (a DemoDataset: ``.tensors``, ``.meta.tasks/.instructions``).
 
     ``extra_losses``: name -> callable(policy) returning an already-weighted scalar, added to the loss
     and logged under its name every step (the orthogonal regularizer and LoRA-SP plug in here).
+    ``on_checkpoint(step, folder)``: called after each resumable checkpoint is written (outside the
+    timed loop), with ``run_dir/loss_curve.jsonl`` complete up to ``step``.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -477,7 +485,9 @@ def train(
                 run.train_seconds += time.perf_counter() - t_segment
                 curve.flush()
                 os.fsync(curve.fileno())
-                run.save()
+                saved = run.save()
+                if on_checkpoint is not None:
+                    on_checkpoint(run.step, saved)
                 t_segment = time.perf_counter()
     elapsed = time.perf_counter() - t_start
     done_steps = config.steps - start

@@ -11,11 +11,14 @@ Where it trained is provenance, not part of the cache key (capvector_core.execut
 the checkpoint, its snapshots and its adapter hold `execution`, what the training invocation that
 finished the run used (capvector_core.device.run_environment): the resolved device (`cpu`, `cuda:0`,
 never `auto`), its name, torch's CPU thread count, the torch build and whether CUDA was available. A
-run resumed from another invocation's checkpoint says so in `summary.resumed_from_step`.
+run resumed from another invocation's checkpoint says so in `summary.resumed_from_step`; that
+invocation may have run on another machine (tasks.scratch: resume checkpoints are copied to a shared
+scratch URL, by default `<home>/scratch` for a remote home, and fetched by the next run).
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 from typing import Any, Literal
@@ -181,8 +184,19 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
         extra |= form.extra_losses()
         trainable = lora.trainable_parameter_count(model)
         run_dir = workspace.run_dir(key)
+        mirror = workspace.checkpoint_mirror(key)
+        on_checkpoint = None
+        if mirror is not None:  # tasks.scratch: resume from another machine's checkpoint, copy ours
+            mirror.restore(run_dir)
+            on_checkpoint = functools.partial(mirror.save, run_dir=run_dir)
         result = train(
-            model, dataset, cfg.train, run_dir, extra_losses=extra, progress=progress_printer(step, "steps")
+            model,
+            dataset,
+            cfg.train,
+            run_dir,
+            extra_losses=extra,
+            progress=progress_printer(step, "steps"),
+            on_checkpoint=on_checkpoint,
         )
 
         summary = {

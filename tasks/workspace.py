@@ -14,6 +14,7 @@ from artifacts.api import ArtifactsAPI
 from artifacts.errors import ArtifactError
 from artifacts.home import is_local, local_cache_dir
 from artifacts.provenance import installed_versions
+from tasks.scratch import CheckpointMirror, scratch_url
 
 # The libraries whose versions can change a trained weight or a score.
 TRACKED_LIBRARIES = ("capvector", "torch", "mujoco", "metaworld", "numpy", "safetensors", "prefect")
@@ -51,13 +52,24 @@ class Workspace:
         return self.api.path(artifact_id, verify=True)
 
     def run_dir(self, key: str) -> Path:
-        """A step's working folder, kept across a crash so training can resume from its checkpoints."""
+        """A step's working folder, kept across a crash so training can resume from its checkpoints
+        (on this machine; `checkpoint_mirror` for another)."""
         path = self.work_dir / key[:32]
         path.mkdir(parents=True, exist_ok=True)
         return path
 
+    def checkpoint_mirror(self, key: str) -> CheckpointMirror | None:
+        """Where a training run's resume checkpoints are copied so another machine can resume it
+        (tasks.scratch: `CAPVECTOR_SCRATCH`, else `<home>/scratch` for a remote home); None: nowhere."""
+        url = scratch_url(self.home)
+        return CheckpointMirror(url, key) if url else None
+
     def finish_run_dir(self, key: str) -> None:
+        """Remove a step's working folder and its checkpoints' scratch copy (its artifact is registered)."""
         shutil.rmtree(self.work_dir / key[:32], ignore_errors=True)
+        mirror = self.checkpoint_mirror(key)
+        if mirror is not None:
+            mirror.clear()
 
     @contextmanager
     def scratch(self) -> Iterator[Path]:
