@@ -9,6 +9,8 @@ os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ["DO_NOT_TRACK"] = "1"
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")  # loaded CI machines
+for _name in ("CAPVECTOR_SCRATCH", "CAPVECTOR_CACHE"):  # a developer's own settings must not leak in
+    os.environ.pop(_name, None)
 if "CAPVECTOR_TEST_KEEP_PREFECT_HOME" not in os.environ:
     os.environ["PREFECT_HOME"] = tempfile.mkdtemp(prefix="capvector-prefect-")
 
