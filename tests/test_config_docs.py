@@ -11,6 +11,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from flows.calibrate_config import load_calibration
 from flows.cli import app
 from flows.config import PRESET_DIR, load_config
 from flows.config_command import describe
@@ -20,8 +21,10 @@ PRESETS = sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
 
 
 def _load(preset: str, overrides: list[str] | None = None):
-    is_study = "study" in (yaml.safe_load((PRESET_DIR / f"{preset}.yaml").read_text()) or {})
-    return load_study(preset, overrides) if is_study else load_config(preset, overrides)
+    data = yaml.safe_load((PRESET_DIR / f"{preset}.yaml").read_text()) or {}
+    if "rule" in data:  # a calibration (flows.calibrate_config)
+        return load_calibration(preset, overrides)
+    return load_study(preset, overrides) if "study" in data else load_config(preset, overrides)
 
 
 def _undocumented(config) -> list[str]:
@@ -30,6 +33,7 @@ def _undocumented(config) -> list[str]:
 
 def test_presets_are_found():
     assert {"smoke", "quick", "hard", "paper", "study-smoke", "study-control", "study-pixels"} <= set(PRESETS)
+    assert {"calibrate-control", "calibrate-smoke"} <= set(PRESETS)
 
 
 @pytest.mark.parametrize("preset", PRESETS)
