@@ -12,6 +12,7 @@ validation goal is used. Writes JSON and Markdown to --out.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -19,12 +20,41 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capvector_core.demos import UNIT_SEEDS, DemoConfig
+from capvector_core.demos import UNIT_SEEDS, DemoConfig, DemoDataset, collect_demos
 from capvector_core.obs_transforms import ObsTransformConfig
-from capvector_core.policy import load_policy
+from capvector_core.policy import build_policy, load_policy
 from capvector_core.trainer import AuxConfig, TrainConfig, train
-from scripts.calibrate import PRETRAIN, cached_demos, pretrain_policy
+from flows.calibrate_config import load_calibration
 from tasks.held_out_loss import held_out_action_loss
+
+PRETRAIN = load_calibration("calibrate-control").splits.pretrain
+"""θ_pt's tasks: the calibration's (and the control studies')."""
+
+
+def cached_demos(config: DemoConfig, work: Path) -> DemoDataset:
+    key = hashlib.sha256(config.model_dump_json(exclude={"workers"}).encode()).hexdigest()[:12]
+    path = work / f"demos-{key}"
+    if path.exists():
+        return DemoDataset.load(path)
+    dataset = collect_demos(config)
+    dataset.save(path)
+    return dataset
+
+
+def pretrain_policy(policy_config: dict, demos: DemoDataset, steps: int, run_dir: Path) -> Path:
+    """θ_pt for a pilot (seed 0, the study presets' pretraining settings); resumes from run_dir."""
+    torch.manual_seed(0)
+    policy = build_policy(policy_config, device="cpu")
+    config = TrainConfig(
+        steps=steps,
+        batch_size=64,
+        lr=1e-3,
+        warmup_steps=100,
+        checkpoint_every=500,
+        num_threads=1,
+        device="cpu",
+    )
+    return train(policy, demos, config, run_dir).weights_path
 
 
 def main() -> None:

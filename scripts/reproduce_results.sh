@@ -8,7 +8,8 @@
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized)
 # Usage: scripts/reproduce_results.sh [control-small|control|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
-# The calibration behind the control presets: docs/calibration.md (scripts/calibrate.py, scripts/pilot_aux.py).
+# The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
+# calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 preset="${1:-control-small}"
