@@ -10,9 +10,6 @@ budgets (`extraction.start_steps` .. `extraction.max_steps`). A preset is a cali
 
 from __future__ import annotations
 
-from typing import Any
-
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from capvector_core.demos import UNIT_SEEDS, DemoConfig
@@ -21,7 +18,7 @@ from capvector_core.metaworld_tasks import validate_task_names
 from capvector_core.policies import L1ChunkConfig
 from capvector_core.policy import AnyPolicyConfig
 from capvector_core.trainer import TrainConfig
-from flows.config import DataSettings, EvalSettings, PipelineConfig, Splits, preset_path, yaml_problem
+from flows.config import DataSettings, EvalSettings, PipelineConfig, Splits, read_preset
 from flows.overrides import apply_overrides
 from tasks.calibration import TaskRule, ladder
 from tasks.training import TrainStepConfig
@@ -221,16 +218,5 @@ class CalibrateConfig(BaseModel):
 
 def load_calibration(preset: str, overrides: list[str] | None = None) -> CalibrateConfig:
     """A calibration preset (it has a `rule` section) with `--set` overrides, validated."""
-    path = preset_path(preset)
-    try:
-        data: Any = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise ValueError(f"preset {path}: {yaml_problem(e)}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"preset {path}: expected a mapping of settings, got a {type(data).__name__}")
-    if "rule" not in data:
-        raise ValueError(
-            f"preset {path} has no `rule` section: it is not a calibration "
-            f"(`capvector {'study' if 'study' in data else 'run'}` runs it)"
-        )
+    data = read_preset(preset, "calibration")
     return CalibrateConfig.model_validate(apply_overrides(data, list(overrides or []), CalibrateConfig))

@@ -384,11 +384,17 @@ def preset_path(preset: str) -> Path:
     return candidate
 
 
-def load_config(
-    preset: str = "quick", overrides: list[str] | None = None, model: type[PipelineConfig] | None = None
-) -> PipelineConfig:
-    """A preset with `--set` overrides, validated by `model` (PipelineConfig; a study's is a subclass)."""
-    model = model or PipelineConfig
+PRESET_COMMANDS = {"pipeline": "run", "study": "study", "calibration": "calibrate"}
+"""The command that runs each kind of preset."""
+
+
+def preset_kind(data: dict) -> str:
+    """What a preset is: a `study` section makes a study, a `rule` section a calibration."""
+    return "study" if "study" in data else "calibration" if "rule" in data else "pipeline"
+
+
+def read_preset(preset: str, kind: str) -> dict:
+    """A preset's settings, refused naming the command that runs it when it is not of `kind`."""
     path = preset_path(preset)
     try:
         data = yaml.safe_load(path.read_text()) or {}
@@ -396,10 +402,21 @@ def load_config(
         raise ValueError(f"preset {path}: {yaml_problem(e)}") from None
     if not isinstance(data, dict):
         raise ValueError(f"preset {path}: expected a mapping of settings, got a {type(data).__name__}")
-    if model is PipelineConfig and "study" in data:
-        raise ValueError(f"preset {path} is a study: run it with `capvector study --preset {preset}`")
-    if model is not PipelineConfig and "study" not in data:
-        raise ValueError(f"preset {path} has no `study` section: it is not a study (`capvector run` runs it)")
+    found = preset_kind(data)
+    if found != kind:
+        raise ValueError(
+            f"preset {path} is a {found} preset, not a {kind}: run it with "
+            f"`capvector {PRESET_COMMANDS[found]} --preset {preset}`"
+        )
+    return data
+
+
+def load_config(
+    preset: str = "quick", overrides: list[str] | None = None, model: type[PipelineConfig] | None = None
+) -> PipelineConfig:
+    """A preset with `--set` overrides, validated by `model` (PipelineConfig; a study's is a subclass)."""
+    model = model or PipelineConfig
+    data = read_preset(preset, "pipeline" if model is PipelineConfig else "study")
     return model.model_validate(apply_overrides(data, list(overrides or []), model))
 
 

@@ -56,19 +56,20 @@ def show(
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print machine-readable JSON")] = False,
 ) -> None:
-    """The resolved config of a preset (study or pipeline), every field with its description."""
+    """The resolved config of a preset (pipeline, study or calibration), every field with its description."""
     import yaml
 
-    from flows.config import load_config, preset_path
-    from flows.study_config import StudyConfig, load_study
+    from flows.calibrate_config import load_calibration
+    from flows.config import load_config, preset_kind, preset_path
+    from flows.study_config import load_study
 
-    is_study = "study" in (yaml.safe_load(preset_path(preset).read_text()) or {})
-    config = load_study(preset, overrides) if is_study else load_config(preset, overrides)
+    kind = preset_kind(yaml.safe_load(preset_path(preset).read_text()) or {})
+    loaders = {"pipeline": load_config, "study": load_study, "calibration": load_calibration}
+    config = loaders[kind](preset, overrides)
     rows = list(describe(config))
     if as_json:
         typer.echo(json.dumps([{"field": p, "value": v, "description": d} for p, v, d in rows], indent=1))
         return
-    kind = "study" if isinstance(config, StudyConfig) else "pipeline"
     typer.echo(f"# {kind} preset {preset} ({len(rows)} fields)")
     width = max(len(p) for p, _, _ in rows)
     for path, value, text in rows:

@@ -16,6 +16,7 @@ from artifacts.api import ArtifactsAPI
 from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
 from flows.calibrate import calibrate_flow, calibration_steps, plan_calibration
 from flows.calibrate_config import load_calibration
+from flows.config import load_config
 from flows.steps import CacheProbe
 from flows.study_config import load_study
 from tasks.calibration import (
@@ -156,8 +157,16 @@ def test_calibration_presets_are_checked_before_anything_runs():
         load_calibration("calibrate-smoke", ["extraction.start_steps=32"])
     with pytest.raises(ValueError, match="extraction.steps"):
         load_calibration("calibrate-smoke", ["extraction.steps=100"])
-    with pytest.raises(ValueError, match="not a calibration"):
+    with pytest.raises(
+        ValueError, match="a study preset, not a calibration: run it with `capvector study"
+    ):
         load_calibration("study-smoke")
+    with pytest.raises(
+        ValueError, match="a calibration preset, not a study: run it with `capvector calib"
+    ):
+        load_study("calibrate-smoke")
+    with pytest.raises(ValueError, match="is a calibration preset, not a pipeline"):
+        load_config("calibrate-smoke")
 
 
 # ---------------------------------------------------------------------------- a real run
