@@ -62,6 +62,8 @@ _LOG_FILE_ENV = "CAPVECTOR_LOG_FILE"  # tasks.progress.LOG_FILE_ENV (not importe
 
 def logs_dir(home: str) -> Path:
     """`<home>/logs` for a local home, `<local cache>/logs` for a remote one (where flows.cli writes)."""
+    if "://" not in str(home):  # a plain path: local (no fsspec import for prune_on_start)
+        return Path(home) / "logs"
     from artifacts.home import is_local, local_cache_dir
 
     return (Path(home) if is_local(home) else local_cache_dir(home)) / "logs"

@@ -2,7 +2,7 @@
 
 The log tests are plain files (milliseconds). The Prefect test runs one subprocess on a fresh
 PREFECT_HOME: a tiny @flow five times on Prefect's embedded server, then `capvector catalogue
-housekeeping` in the same process (so the server boots once). That boot is most of its ~15 s on a busy
+housekeeping` in the same process (so the server boots once). That boot is most of its 18-23 s on a busy
 2-core machine; the pruning itself takes well under a second.
 """
 
