@@ -8,8 +8,11 @@ environment points the CLI and every worker it spawns at that server.
 The server dies with the CLI, also after `kill -9`: it is spawned from the main thread (the
 parent-death signal fires when the spawning *thread* ends, and the main thread lives as long as the
 process) with `PR_SET_PDEATHSIG`; a normal exit stops it after Prefect's own exit handlers have
-flushed their events to it. The listening socket is bound here and handed to uvicorn (`--fd`), so no
-other process can take the port between choosing it and serving on it.
+flushed their events to it. It runs in a session of its own: Ctrl-C at the terminal (SIGINT to the
+terminal's process group) reaches the CLI and its workers but not the server, so the CLI decides how
+the run ends (flows.cli) instead of finding its API gone. The listening socket is bound here and
+handed to uvicorn (`--fd`), so no other process can take the port between choosing it and serving on
+it.
 
 With `PREFECT_API_URL` already set (a `prefect server start`, docker-compose's server), nothing is
 started: the configured server is checked for reachability instead.
@@ -69,6 +72,7 @@ class RunServer:
             env=env,
             pass_fds=(fd,),
             preexec_fn=_die_with_parent(os.getpid()),
+            start_new_session=True,  # out of the terminal's process group: Ctrl-C is the CLI's to handle
             stdin=subprocess.DEVNULL,
             stdout=self._output,
             stderr=subprocess.STDOUT,

@@ -372,6 +372,16 @@ def _session_alive(sid: int) -> list[int]:
     return alive
 
 
+def _children_of(pid: int) -> dict[int, str]:
+    children = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, IndexError):
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                cmdline = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                children[int(stat.parent.name)] = cmdline
+    return children
+
+
 def test_sigterm_stops_the_embedded_prefect_server_and_workers(tmp_path):
     env = {**os.environ, "CAPVECTOR_HOME": str(tmp_path / "home"), "CAPVECTOR_QUIET": "1"}
     proc = subprocess.Popen(
@@ -380,15 +390,19 @@ def test_sigterm_stops_the_embedded_prefect_server_and_workers(tmp_path):
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 120
-        while len(_session_alive(proc.pid)) < 3 and time.monotonic() < deadline:  # CLI, uvicorn, workers
+        while len(_session_alive(proc.pid)) < 3 and time.monotonic() < deadline:  # CLI, workers, tracker
             time.sleep(0.2)
         assert proc.poll() is None and len(_session_alive(proc.pid)) >= 3, "helpers never started"
+        # the server runs in a session of its own (out of reach of the terminal's Ctrl-C)
+        servers = [p for p, cmd in _children_of(proc.pid).items() if "uvicorn" in cmd]
+        assert servers, "the run's Prefect server never started"
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 128 + signal.SIGTERM
         deadline = time.monotonic() + 30
-        while _session_alive(proc.pid) and time.monotonic() < deadline:
+        while (_session_alive(proc.pid) or _session_alive(servers[0])) and time.monotonic() < deadline:
             time.sleep(0.2)
         assert _session_alive(proc.pid) == [], "processes outlived the terminated CLI"
+        assert _session_alive(servers[0]) == [], "the Prefect server outlived the terminated CLI"
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)

@@ -43,9 +43,11 @@ def _dockerfile_commands() -> list[list[str]]:
 
 def test_the_deploy_files_name_the_commands_we_expect():
     programs = {c[0] for c in _compose_commands()} | {c[0] for c in _dockerfile_commands()}
-    assert programs == {"prefect", "capvector"}, programs
+    assert programs == {"prefect", "capvector", "dask"}, programs
     assert any(c[:3] == ["prefect", "server", "start"] for c in _compose_commands())
     assert any(c[:2] == ["capvector", "schedule"] for c in _compose_commands())
+    assert any(c[:2] == ["dask", "scheduler"] for c in _compose_commands())  # the `cluster` profile
+    assert any(c[:2] == ["dask", "worker"] for c in _compose_commands())
 
 
 def _executable(program: str) -> str:
