@@ -839,9 +839,9 @@ def _end(signum: int) -> None:
 QUIET_RESOURCE_TRACKER = "ignore:resource_tracker:UserWarning:multiprocessing.resource_tracker"
 
 
-def one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException, leave_out: str | None = None) -> str:
     """An error as one line: its message (a pydantic error as `field: problem` per error, DuckDB's
-    multi-line messages joined), then its notes (the step it came from)."""
+    multi-line messages joined), then its notes (the step it came from) but `leave_out`."""
     from pydantic import ValidationError
 
     if isinstance(exc, ValidationError):
@@ -854,7 +854,7 @@ def one_line(exc: BaseException) -> str:
         text = f"{exc.title}: " + "; ".join(parts)
     else:
         text = str(exc) or type(exc).__name__
-    notes = [n for n in getattr(exc, "__notes__", ()) if isinstance(n, str)]
+    notes = [n for n in getattr(exc, "__notes__", ()) if isinstance(n, str) and n != leave_out]
     return " ".join(line.strip() for part in [text, *notes] for line in part.splitlines() if line.strip())
 
 
@@ -862,15 +862,60 @@ def _is_duckdb_error(exc: BaseException) -> bool:
     return type(exc).__module__.split(".")[0] in ("duckdb", "_duckdb")
 
 
-def _fail(exc: BaseException, code: int) -> None:
-    """Print the error in one line (after its traceback with --debug) and exit with `code`."""
+def _is_user_error(exc: BaseException) -> bool:
+    """Bad input (exit 2): a bad value, id, path, config or query; anything else exits 1."""
+    from pydantic import ValidationError
+
+    user_errors = (ValueError, ArtifactError, ValidationError, FileNotFoundError, FileExistsError)
+    # (capvector_core's CheckpointError is a ValueError; not imported: it loads numpy)
+    return isinstance(exc, user_errors) or _is_duckdb_error(exc)
+
+
+STEP_NOTE = "in step "  # tasks.prefect_task notes a step's error as `in step '<label>'`
+FIRST_FAILURE_WAIT_S = 5.0
+
+
+def _failed_step(exc: BaseException) -> tuple[str, BaseException] | None:
+    """(step, its error) for the flow's first failed step when `exc` is how a failure reached the CLI:
+    that step's error, a later step's, or Prefect's word that a step's inputs never came."""
+    steps = sys.modules.get("flows.steps")  # loaded where a flow ran
+    if steps is None or not isinstance(exc, Exception):
+        return None
+    if steps.upstream_failed(exc):  # a step failed: its done-callback may still be on its way
+        failure = steps.first_failure(wait_s=FIRST_FAILURE_WAIT_S)
+        return (failure.step, failure.error) if failure is not None else None
+    step = _step_of(exc)
+    if step is None:
+        return None
+    failure = steps.first_failure()  # one that failed before it, if any
+    return (failure.step, failure.error) if failure is not None else (step, exc)
+
+
+def _step_of(exc: BaseException) -> str | None:
+    """The step a step's error names in its note (tasks.prefect_task adds `in step '<label>'`)."""
+    import ast
+
+    for note in getattr(exc, "__notes__", ()):
+        if isinstance(note, str) and note.startswith(STEP_NOTE):
+            with contextlib.suppress(ValueError, SyntaxError):
+                label = ast.literal_eval(note.removeprefix(STEP_NOTE))
+                if isinstance(label, str):
+                    return label
+    return None
+
+
+def _fail(exc: BaseException, code: int, step: str | None = None) -> None:
+    """Print the error in one line (after its traceback with --debug) and exit with `code`; a failed
+    step's error as `step '<label>' failed: <its message>`."""
     if State.debug:
         import traceback
 
         traceback.print_exception(exc)
-    text = one_line(exc)
+    text = one_line(exc, leave_out=STEP_NOTE + repr(step) if step else None)
     if code == 1:  # not a user error: say what it is and where to look
         text = f"{type(exc).__name__}: {text}" + ("" if State.debug else " (--debug shows the traceback)")
+    if step is not None:
+        text = f"step {step!r} failed: {text}"
     from rich.markup import escape
 
     # ids and paths stay whole; a tensor named like rich markup (`x[/bold]`) prints as it is
@@ -880,39 +925,38 @@ def _fail(exc: BaseException, code: int) -> None:
 
 def main() -> None:
     """Console entry point: an error prints one line naming the problem and exits 2 (bad input) or 1
-    (anything else), nothing half-written; `--debug` (or CAPVECTOR_DEBUG=1) shows the traceback.
-    Ctrl-C: `interrupted`, exit 130 (see _stop_on_signals)."""
-    from pydantic import ValidationError
-
+    (anything else), nothing half-written; `--debug` (or CAPVECTOR_DEBUG=1) shows the traceback. A
+    failed flow names the step that failed first and that step's error, whichever error the flow
+    raised. Ctrl-C: `interrupted`, exit 130 (see _stop_on_signals)."""
     terminated = _stop_on_signals()
     if QUIET_RESOURCE_TRACKER not in sys.warnoptions:
         sys.warnoptions.append(QUIET_RESOURCE_TRACKER)
     try:
         try:
             code = app(standalone_mode=False)  # click returns a typer.Exit's code here
-        except BaseException:
+        except BaseException as exc:
             if terminated():
                 _end(signal.SIGTERM)
+            failed = _failed_step(exc)
+            if failed is not None:
+                step, error = failed
+                if State.debug and error is not exc:
+                    import traceback
+
+                    traceback.print_exception(exc)  # how the flow ended; then the step's own error
+                _fail(error, 2 if _is_user_error(error) else 1, step)
             raise
-    except (
-        ValueError,
-        ArtifactError,  # capvector_core's CheckpointError is a ValueError (not imported: it loads numpy)
-        ValidationError,
-        FileNotFoundError,
-        FileExistsError,
-    ) as exc:
-        _fail(exc, 2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except typer.Abort:
         sys.exit(130)
-    except Exception as exc:  # click's usage errors (typer vendors click: not `click.ClickException`)
-        from typer._click.exceptions import ClickException
+    except Exception as exc:
+        from typer._click.exceptions import ClickException  # typer vendors click
 
-        if isinstance(exc, ClickException):
+        if isinstance(exc, ClickException):  # a usage error: click's own message and code
             exc.show()
             sys.exit(exc.exit_code)
-        _fail(exc, 2 if _is_duckdb_error(exc) else 1)  # a bad query is bad input
+        _fail(exc, 2 if _is_user_error(exc) else 1)
     if isinstance(code, int) and code:
         sys.exit(code)
 

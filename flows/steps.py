@@ -4,11 +4,18 @@ A step whose inputs are already known and whose artifact the content cache holds
 flow's process: still a Prefect task run (shown as `Cached` in the UI), but no pool worker is started
 for it, so a run where everything is cached never pays for spawning workers (seconds each: they
 import torch, Prefect and Meta-World). Any other step goes to the flow's task runner.
+
+The first step to fail is recorded (`first_failure`): what the flow itself raises may be a later
+step's Prefect error (`UpstreamTaskError`, `UnfinishedRun`: "Upstream task run '<uuid>' did not reach
+a 'COMPLETED' state"), depending on which result it waited for first; the CLI names the step instead.
 """
 
 from __future__ import annotations
 
+import asyncio
 import threading
+from concurrent.futures import CancelledError
+from dataclasses import dataclass
 from typing import Any
 
 from prefect.futures import PrefectFuture
@@ -38,13 +45,23 @@ class StepRunner:
         if all(isinstance(v, str) for v in inputs.values()):
             if step_task.cached_id(self.home, step, inputs, config) is not None:
                 state = step_task(self.home, step, inputs, config, return_state=True)
-                artifact_id = state.result()
+                try:
+                    artifact_id = state.result()
+                except Exception as exc:
+                    record_failure(step, exc)
+                    raise
                 self._report(step, "cached")
                 return artifact_id
         with placement(config):  # what the step asks of the engine: a GPU worker for a cuda step
             future = step_task.submit(self.home, step, inputs, config)
-        future.add_done_callback(lambda f: self._report(step, _outcome(f)))
+        future.add_done_callback(lambda f: self._on_done(step, f))
         return future
+
+    def _on_done(self, step: str, future: PrefectFuture) -> None:
+        outcome, error = _outcome(future)
+        if error is not None:
+            record_failure(step, error)  # before the progress line: the flow may be failing already
+        self._report(step, outcome)
 
     def _report(self, step: str, outcome: str) -> None:
         with self._lock:
@@ -85,16 +102,80 @@ class CacheProbe(StepRunner):
 OUTCOME_WAIT_S = 30.0
 
 
-def _outcome(future: PrefectFuture) -> str:
-    """How a finished step ended. Never raises: it runs as a done-callback, where an exception (a step
-    whose upstream failed cannot even be resolved) would be printed as a traceback; the flow reports
-    the failure itself, in one line."""
+NOT_RUN = "not run (a step it needs failed)"
+
+
+def _outcome(future: PrefectFuture) -> tuple[str, BaseException | None]:
+    """How a finished step ended, and the step's own error if it failed. Never raises: it runs as a
+    done-callback, where an exception would be printed as a traceback; the CLI reports the failure
+    itself, in one line. A step that never ran because a step it needs failed has no error of its own
+    (a pool cannot even resolve its inputs: its future raises `UpstreamTaskError`; a thread runner's
+    task ends `NotReady`)."""
     try:
         # Records the final state, which `state` would otherwise fetch from the API (stale). The future
         # is done: a pool's answers at once; a Dask future fetches its state from the worker first
         # (callbacks run on Dask's callback thread, so waiting here blocks no step).
         future.wait(timeout=OUTCOME_WAIT_S)
         state = future.state
-    except Exception:
-        return "failed"
-    return "cached" if state.name == "Cached" else "done" if state.is_completed() else state.name.lower()
+    except (CancelledError, asyncio.CancelledError):  # the flow stopped before the step ran
+        return "cancelled", None
+    except Exception as exc:
+        return (NOT_RUN, None) if upstream_failed(exc) else ("failed", exc)
+    if state.is_completed():
+        return ("cached" if state.name == "Cached" else "done"), None
+    if state.name == "NotReady":
+        return NOT_RUN, None
+    if not (state.is_failed() or state.is_crashed()):
+        return state.name.lower(), None
+    try:
+        error = state.result(raise_on_failure=False)
+    except Exception as exc:  # a result that cannot be read back is still this step's failure
+        error = exc
+    if not isinstance(error, BaseException):
+        error = RuntimeError(state.message or f"the step ended {state.name}")
+    return "failed", error
+
+
+def upstream_failed(exc: BaseException) -> bool:
+    """The error says only that a step's inputs never came (Prefect's `UpstreamTaskError`, or the
+    `UnfinishedRun` of a result that never came), not why: the first failure says that."""
+    from prefect.exceptions import UnfinishedRun, UpstreamTaskError
+
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, UpstreamTaskError | UnfinishedRun):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
+@dataclass(frozen=True)
+class StepFailure:
+    """A step that failed, and its error."""
+
+    step: str
+    error: BaseException
+
+
+_first_failure: StepFailure | None = None
+_failure_lock = threading.Lock()
+_failed = threading.Event()
+
+
+def record_failure(step: str, error: BaseException) -> None:
+    """Keep the first step failure of this process (the CLI runs one flow at a time)."""
+    global _first_failure
+    with _failure_lock:
+        if _first_failure is None:
+            _first_failure = StepFailure(step, error)
+            _failed.set()
+
+
+def first_failure(wait_s: float = 0.0) -> StepFailure | None:
+    """The first step that failed in this process, if any; waiting up to `wait_s` for one (a step's
+    done-callback may still be on its way when a later step's error has already ended the flow)."""
+    if wait_s > 0:
+        _failed.wait(wait_s)
+    return _first_failure
