@@ -119,7 +119,8 @@ class State:
     debug: bool = os.environ.get("CAPVECTOR_DEBUG", "").lower() not in ("", "0", "false")
 
 
-# Commands that run a flow: they get the run's one Prefect API server (flows.run_server).
+# Commands that run a flow: they get the run's one Prefect API server (flows.run_server). Its address
+# is reserved before Prefect is imported; the process starts when a flow is sure to run.
 FLOW_COMMANDS = {"run", "study", "evaluate", "reevaluate", "sweep", "schedule"}
 
 
@@ -142,7 +143,26 @@ def main_options(
     if ctx.invoked_subcommand in FLOW_COMMANDS:
         from flows.run_server import start_run_server
 
-        start_run_server()  # boots while the command imports torch and the flows
+        start_run_server()  # the address only: a run the content cache answers never starts the server
+
+
+def _boot_server() -> None:
+    """Spawn the run's reserved Prefect server now, so that it boots while the command imports torch
+    and the flows: for a command sure to run a flow (evaluate, reevaluate, sweep; run and study on a
+    new home). Otherwise `_preflight` starts it, once the content cache has not answered the plan."""
+    from flows.run_server import start_server_now
+
+    start_server_now()
+
+
+def _new_home(home: str | None, dry_run: bool) -> bool:
+    """A local home that does not exist yet, for a run that is not a dry run: nothing is cached."""
+    if dry_run:
+        return False
+    from artifacts.home import is_local
+
+    home = resolve_home(home)
+    return is_local(home) and not Path(home).exists()
 
 
 def _workspace(home: str | None):
@@ -157,8 +177,9 @@ def _print_json(data: Any) -> None:
 
 
 def _preflight(command: str, home: str | None) -> None:
-    """Before any flow: progress goes to a log file as well as the terminal; the run's Prefect server
-    is up (a configured but unreachable one is an error naming its address, not a hang)."""
+    """Before any flow: the run's Prefect server is started (if not yet) and up (a configured but
+    unreachable one is an error naming its address, not a hang); progress goes to a log file as well
+    as the terminal."""
     from flows.run_server import wait_for_api
     from tasks.prefect_task import quiet_failed_run_logs
 
@@ -185,10 +206,9 @@ def _start_log(command: str, home: str | None) -> None:
 def _from_cache(command: str, home: str, plan, total: int, label: str, dry_run: bool = False):
     """Know before starting: the plan's result when the content cache answers every step (no Prefect
     run, server wait or worker), else None. `dry_run` prints the plan's cache status and exits."""
-    from artifacts.home import is_local
     from flows.steps import CacheProbe, NotAllCached
 
-    if is_local(home) and not Path(home).exists() and not dry_run:
+    if _new_home(home, dry_run):
         return None  # a new home caches nothing (and an unreachable server must leave none behind)
     probe = CacheProbe(home, total, label)
     try:
@@ -248,6 +268,8 @@ def run(
     cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Run the whole recipe (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> eval -> report."""
+    if _new_home(home, dry_run):
+        _boot_server()
     from flows.config import load_config
     from flows.pipeline import pipeline, pipeline_steps, run_pipeline
 
@@ -294,6 +316,7 @@ def evaluate(
     as_json: JsonOption = False,
 ) -> None:
     """Evaluate checkpoints on any tasks under one protocol (test seeds, disjoint from demo seeds)."""
+    _boot_server()
     from capvector_core.evaluation import EvalConfig
     from flows.evaluation_flows import evaluate_flow
 
@@ -341,6 +364,7 @@ def reevaluate(
     cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Re-run the evaluations of the selected checkpoints under the installed library versions."""
+    _boot_server()
     from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
 
     runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs, default="thread")
@@ -376,6 +400,8 @@ def study(
     cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
+    if _new_home(home, dry_run):
+        _boot_server()
     from functools import partial
 
     from flows.study import plan_study, study_flow, study_steps
@@ -416,6 +442,7 @@ def sweep(
     cluster_kwargs: ClusterKwargsOption = None,
 ) -> None:
     """Grid over α and λ for the CapVector arm, picked on validation seeds (never the test seeds)."""
+    _boot_server()
     from flows.config import load_config
     from flows.sweep import sweep_flow, sweep_markdown
 

@@ -1,18 +1,23 @@
-"""One Prefect API server per CLI run, started first and shared by the CLI and its step workers.
+"""One Prefect API server per CLI run, shared by the CLI and its step workers, started only when a
+flow is going to run.
 
 Without it every process that talks to Prefect's embedded API starts its own server (the CLI and each
-pool worker: three per run, ~9 s and ~250 MB each). Here the CLI starts one before it imports
-Prefect, so the server boots while the CLI imports torch and the flows, and `PREFECT_API_URL` in the
-environment points the CLI and every worker it spawns at that server.
+pool worker: three per run, ~9 s and ~250 MB each). Here the CLI reserves the server's address first
+(`start_run_server`: a socket bound to a free port, `PREFECT_API_URL` exported), before it imports
+Prefect, which reads that URL at import; every worker it spawns inherits it. The server process itself
+is spawned when a flow is about to run (`wait_for_api`, from the command's preflight), so a command the
+content cache answers whole never pays for one. `start_server_now` spawns it at once, for a command
+that certainly runs a flow: it then boots while the CLI imports torch and the flows.
 
 The server dies with the CLI, also after `kill -9`: it is spawned from the main thread (the
 parent-death signal fires when the spawning *thread* ends, and the main thread lives as long as the
 process) with `PR_SET_PDEATHSIG`; a normal exit stops it after Prefect's own exit handlers have
 flushed their events to it. It runs in a session of its own: Ctrl-C at the terminal (SIGINT to the
 terminal's process group) reaches the CLI and its workers but not the server, so the CLI decides how
-the run ends (flows.cli) instead of finding its API gone. The listening socket is bound here and
-handed to uvicorn (`--fd`), so no other process can take the port between choosing it and serving on
-it.
+the run ends (flows.cli) instead of finding its API gone. The server's socket is bound at reservation
+and handed to uvicorn (`--fd`), so no other process can take the port between choosing it and serving
+on it; it listens only once uvicorn serves, so a client that comes too early (before `wait_for_api`)
+is refused at once instead of waiting on a server that may never start.
 
 With `PREFECT_API_URL` already set (a `prefect server start`, docker-compose's server), nothing is
 started: the configured server is checked for reachability instead.
@@ -39,15 +44,23 @@ class RunServer:
     """The run's Prefect API server process and the URL the run's processes reach it under."""
 
     def __init__(self) -> None:
-        self._socket = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._socket.bind(("127.0.0.1", 0))
-        self._socket.listen(128)
+        self._socket: socket.socket | None = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._socket.bind(("127.0.0.1", 0))  # uvicorn listens on it once it serves
         self.port = self._socket.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}/api"
-        fd = self._socket.fileno()
+        self.process: subprocess.Popen | None = None
         # The server's own output (a start-up error; uvicorn's complaint when a failing CLI stops it
         # mid-boot) is not the user's: kept aside, and quoted if the server cannot start.
         self._output = tempfile.TemporaryFile()
+
+    def start(self) -> None:
+        """Spawn the server on the reserved socket (once; from the main thread)."""
+        if self.process is not None:
+            return
+        if threading.current_thread() is not threading.main_thread():
+            raise RuntimeError("start the run's Prefect server from the main thread")
+        assert self._socket is not None
+        fd = self._socket.fileno()
         env = {
             **os.environ,
             "PREFECT_UI_ENABLED": "0",
@@ -77,10 +90,17 @@ class RunServer:
             stdout=self._output,
             stderr=subprocess.STDOUT,
         )
-        self._socket.close()  # the server holds its own copy of the listening socket
+        self._release_socket()  # the server holds its own copy of the socket
+
+    def _release_socket(self) -> None:
+        if self._socket is not None:
+            self._socket.close()
+            self._socket = None
 
     def wait_ready(self, timeout_s: float | None = None) -> None:
         """Block until the server answers /health; its exit or the timeout is an error naming why."""
+        self.start()
+        assert self.process is not None
         limit = timeout_s or float(os.environ.get(START_TIMEOUT_ENV, "120"))
         deadline = time.monotonic() + limit
         while True:
@@ -100,7 +120,8 @@ class RunServer:
         return " ".join(self._output.read().decode(errors="replace").split()[-60:])
 
     def stop(self) -> None:
-        if self.process.poll() is None:
+        self._release_socket()  # never started: nothing listens on the address any more
+        if self.process is not None and self.process.poll() is None:
             self.process.terminate()
             try:
                 self.process.wait(timeout=10)
@@ -113,23 +134,28 @@ _server: RunServer | None = None
 
 
 def start_run_server() -> RunServer | None:
-    """Start this run's server (once per process) unless PREFECT_API_URL names one; export its URL.
+    """Reserve this run's server (once per process) unless PREFECT_API_URL names one: its port is
+    bound and its URL exported, but no process starts until a flow is about to (`wait_for_api`).
 
-    Call before anything imports Prefect, from the main thread: Prefect reads PREFECT_API_URL when it
-    is imported, and the spawning thread decides when the parent-death signal fires."""
+    Call before anything imports Prefect: Prefect reads PREFECT_API_URL when it is imported."""
     global _server
     if _server is not None or os.environ.get("PREFECT_API_URL"):
         return _server
-    if threading.current_thread() is not threading.main_thread():
-        raise RuntimeError("start the run's Prefect server from the main thread")
     _server = RunServer()
     os.environ["PREFECT_API_URL"] = _server.url
     atexit.register(_server.stop)  # registered before Prefect's handlers, so it runs after them
     return _server
 
 
+def start_server_now() -> None:
+    """Spawn the reserved server at once (a command that certainly runs a flow: it boots meanwhile)."""
+    if _server is not None:
+        _server.start()
+
+
 def wait_for_api() -> None:
-    """Before the first flow: the run's server is up, or the configured one answers."""
+    """Before the first flow: the run's server is started (from the main thread) and up, or the
+    configured one answers."""
     if _server is not None:
         _server.wait_ready()
         return
