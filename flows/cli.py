@@ -121,7 +121,7 @@ class State:
 
 # Commands that run a flow: they get the run's one Prefect API server (flows.run_server). Its address
 # is reserved before Prefect is imported; the process starts when a flow is sure to run.
-FLOW_COMMANDS = {"run", "study", "evaluate", "reevaluate", "sweep", "schedule"}
+FLOW_COMMANDS = {"run", "study", "calibrate", "evaluate", "reevaluate", "sweep", "schedule"}
 
 
 @app.callback()
@@ -200,6 +200,9 @@ def _start_log(command: str, home: str | None) -> None:
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
         slug = "-".join(command.replace("--preset", "").split())
         os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
+        from flows.housekeeping import prune_on_start
+
+        prune_on_start(resolve_home(home))  # logs stay bounded (~2 ms; the new one is always kept)
     emit(f"capvector {command}: home {resolve_home(home)}, log {os.environ[LOG_FILE_ENV]}")
 
 
@@ -427,6 +430,48 @@ def study(
     typer.echo(result["markdown"])  # Markdown as written (a console would re-wrap its tables)
     typer.echo(f"study: {result['report']}   (capvector lineage {result['report'][:12]})")
     typer.echo(f"report and figures: {written}")
+
+
+@app.command()
+def calibrate(
+    preset: Annotated[str, typer.Option(help="calibrate-control | a YAML path")] = "calibrate-control",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+    dry_run: DryRunOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
+) -> None:
+    """Calibrate a testbed before a study: SFT curves per task on validation goals, the written rule,
+    the task sets, and the extraction budget at which held-out loss is flat (or the cap)."""
+    if _new_home(home, dry_run):
+        _boot_server()
+    from functools import partial
+
+    from flows.calibrate import calibrate_flow, calibration_steps, plan_calibration
+    from flows.calibrate_config import load_calibration
+
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
+    config = load_calibration(preset, overrides)
+    command, label = f"calibrate --preset {preset}", f"calibrate {config.name}"
+    plan = partial(plan_calibration, config)
+    result = _from_cache(command, resolve_home(home), plan, calibration_steps(config), label, dry_run)
+    if result is None:
+        from flows.runs import run_tags
+
+        _preflight(command, home)
+        with run_tags("calibrate", config.name):
+            result = _on_runner(calibrate_flow, runner_config)(
+                config.model_dump(mode="json"), resolve_home(home)
+            )
+    if as_json:
+        _print_json({k: v for k, v in result.items() if k != "markdown"})
+        return
+    typer.echo(result["markdown"])  # the preset lines to paste are in it
+    typer.echo(f"calibration: {result['calibration']}   (capvector lineage {result['calibration'][:12]})")
 
 
 @app.command()

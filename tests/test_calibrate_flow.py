@@ -5,7 +5,10 @@ second run takes whole from the cache."""
 
 from __future__ import annotations
 
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -157,13 +160,9 @@ def test_calibration_presets_are_checked_before_anything_runs():
         load_calibration("calibrate-smoke", ["extraction.start_steps=32"])
     with pytest.raises(ValueError, match="extraction.steps"):
         load_calibration("calibrate-smoke", ["extraction.steps=100"])
-    with pytest.raises(
-        ValueError, match="a study preset, not a calibration: run it with `capvector study"
-    ):
+    with pytest.raises(ValueError, match="a study preset, not a calibration: run it with `capvector study"):
         load_calibration("study-smoke")
-    with pytest.raises(
-        ValueError, match="a calibration preset, not a study: run it with `capvector calib"
-    ):
+    with pytest.raises(ValueError, match="a calibration preset, not a study: run it with `capvector calib"):
         load_study("calibrate-smoke")
     with pytest.raises(ValueError, match="is a calibration preset, not a pipeline"):
         load_config("calibrate-smoke")
@@ -233,3 +232,24 @@ def test_a_tiny_calibration_records_every_curve_and_verdict_and_is_then_answered
     assert again.result() == result and _artifact_count(home) == before
     states = _task_states(again.state_details.flow_run_id)
     assert states and set(states.values()) == {"Cached"}, states
+
+    # The command: answered from the cache before any flow or server, the same calibration printed.
+    cli = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "--home",
+            str(home),
+            "calibrate",
+            "--preset",
+            "calibrate-smoke",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert cli.returncode == 0, cli.stderr
+    assert json.loads(cli.stdout)["calibration"] == result["calibration"]
+    assert "every one cached" in cli.stderr + cli.stdout
