@@ -26,6 +26,7 @@ started: the configured server is checked for reachability instead.
 from __future__ import annotations
 
 import atexit
+import fcntl
 import os
 import signal
 import socket
@@ -35,6 +36,7 @@ import tempfile
 import threading
 import time
 import urllib.request
+from pathlib import Path
 
 START_TIMEOUT_ENV = "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"
 PR_SET_PDEATHSIG = 1
@@ -49,6 +51,7 @@ class RunServer:
         self.port = self._socket.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}/api"
         self.process: subprocess.Popen | None = None
+        self._boot_lock: int | None = None
         # The server's own output (a start-up error; uvicorn's complaint when a failing CLI stops it
         # mid-boot) is not the user's: kept aside, and quoted if the server cannot start.
         self._output = tempfile.TemporaryFile()
@@ -68,6 +71,7 @@ class RunServer:
             "PREFECT__SERVER_FINAL": "1",
         }
         env.pop("PREFECT_API_URL", None)
+        self._boot_lock = _lock_prefect_home()
         self.process = subprocess.Popen(
             [
                 sys.executable,
@@ -109,17 +113,24 @@ class RunServer:
                 raise RuntimeError(f"Prefect's API server exited with code {code} at start: {self._tail()}")
             try:
                 urllib.request.urlopen(f"{self.url}/health", timeout=2).read()
+                self._release_boot_lock()
                 return
             except OSError:
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"Prefect's API server did not answer within {limit:.0f} s") from None
                 time.sleep(0.05)
 
+    def _release_boot_lock(self) -> None:
+        if self._boot_lock is not None:
+            os.close(self._boot_lock)  # closing the only descriptor releases the flock
+            self._boot_lock = None
+
     def _tail(self) -> str:
         self._output.seek(0)
         return " ".join(self._output.read().decode(errors="replace").split()[-60:])
 
     def stop(self) -> None:
+        self._release_boot_lock()
         self._release_socket()  # never started: nothing listens on the address any more
         if self.process is not None and self.process.poll() is None:
             self.process.terminate()
@@ -166,6 +177,18 @@ def wait_for_api() -> None:
         urllib.request.urlopen(url.rstrip("/") + "/health", timeout=5).read()
     except OSError as exc:
         raise ValueError(f"the Prefect server at PREFECT_API_URL={url} is not reachable: {exc}") from None
+
+
+def _lock_prefect_home() -> int:
+    """Hold PREFECT_HOME's boot lock until the server answers: a server's start migrates and seeds
+    Prefect's database, and two first starts on one new database race (a duplicate index or block
+    type kills one of them). Servers of concurrent runs boot one after another; the lock is an flock,
+    so a CLI that dies releases it."""
+    home = Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
+    home.mkdir(parents=True, exist_ok=True)
+    fd = os.open(home / ".capvector-server-boot.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return fd
 
 
 def _die_with_parent(parent: int):

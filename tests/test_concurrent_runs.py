@@ -19,7 +19,9 @@ this test fails (seen: a run failing on the loss curve the other run's finished 
 
 Why `run --preset smoke` and not `study --preset study-smoke`: measured on this project's busy 2-core
 machine, two concurrent smoke runs take ~41 s (a lone one ~27 s) and this whole test 70-80 s, against
-~105 s for two concurrent study-smoke runs plus ~73 s for the lone one.
+~105 s for two concurrent study-smoke runs plus ~73 s for the lone one. The three runs start on a
+Prefect home no server has initialised yet: once, concurrent first starts of the run servers raced on
+its migrations (a duplicate index or block type killed one run).
 """
 
 from __future__ import annotations
@@ -121,24 +123,11 @@ def _trainings(home: Path) -> Counter:
     return found
 
 
-def _initialise_prefect_database() -> None:
-    """Prefect's database of the session's PREFECT_HOME, made ready by one server start first.
-
-    Several CLIs starting on a Prefect home whose database no server has initialised yet each start a
-    server that runs Prefect's migrations and registers its block types on the same new SQLite file
-    at once; one of them can fail ("index ... already exists", or a unique-constraint error on
-    block_type) and its run exits 1. That is a race of the run servers' start (flows.run_server), not
-    of the capvector home this test is about; once one server has started, concurrent starts are safe."""
-    code = (
-        "from prefect.client.orchestration import get_client\n"
-        "with get_client(sync_client=True) as client: client.hello()"
-    )
-    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, timeout=300)
-
-
-def test_two_runs_on_one_home_at_once_record_what_a_lone_run_records(tmp_path):
+def test_two_runs_on_one_home_at_once_record_what_a_lone_run_records(tmp_path, monkeypatch):
     shared, lone = tmp_path / "shared", tmp_path / "lone"
-    _initialise_prefect_database()
+    # A Prefect home no server has initialised: the three run servers' first starts must not race on
+    # its migrations and block types (flows.run_server holds PREFECT_HOME's boot lock until ready).
+    monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "prefect"))
     results = _run_together([shared, shared, lone])
     for code, _, err in results:
         assert code == 0, f"a run failed ({code}):\n{err[-3000:]}"
