@@ -5,9 +5,10 @@
 # where it stopped in the next.
 #   control-small -> docs/study_control_small.md  the default of `make run`: the positive-control testbed
 #   control       -> docs/study_control.md        the same testbed, 2 draws x 2 seeds x 140 test goals
+#   control-10000 -> docs/study_control_10000.md  the same at its declared 3 x 3, extraction 10,000 steps
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized)
-# Usage: scripts/reproduce_results.sh [control-small|control|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+# Usage: scripts/reproduce_results.sh [control-small|control|control-10000|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -16,5 +17,8 @@ preset="${1:-control-small}"
 case "$preset" in
   control-small | control | state | pixels)
     .venv/bin/capvector study --preset "study-$preset" --report "docs/study_${preset//-/_}.md" ;;
-  *) echo "usage: $0 [control-small|control|state|pixels]" >&2; exit 2 ;;
+  control-10000)
+    .venv/bin/capvector study --preset study-control --set 'study.draws=[0,1,2]' --set 'seeds=[0,1,2]' \
+      --set extraction.steps=10000 --set extraction.checkpoint_every=2500 --report docs/study_control_10000.md ;;
+  *) echo "usage: $0 [control-small|control|control-10000|state|pixels]" >&2; exit 2 ;;
 esac
