@@ -189,21 +189,38 @@ def test_unreadable_sidecar_is_not_indexed_and_does_not_fail_the_open(tmp_path):
     assert bad.id in cli(home, "catalogue", "verify", code=1).stdout
 
 
-def test_remote_store_is_listed_at_most_once_per_interval(tmp_path, monkeypatch):
-    """A remote store has no directory times to compare: it is listed when the last listing is older
-    than REMOTE_SYNC_INTERVAL_S."""
+def test_a_remote_store_is_listed_only_when_its_change_token_moved(tmp_path, monkeypatch):
+    """A remote store has no directory times: every commit rewrites its change token, and an open lists
+    the store only when the token differs from the one its last listing saw. A store no writer gave a
+    token (an older version wrote it) is listed when the last listing is older than
+    REMOTE_SYNC_INTERVAL_S."""
     monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "cache"))
     home = f"memory://capvector-sync-{uuid.uuid4().hex}"
     api = ArtifactsAPI(home)
     first = api.register_json({"a": 1}, "dataset", "a")
-    late = api.store.put_json({"b": 1}, "checkpoint", "b", parents=[(first.id, "data")])
+    ArtifactsAPI(home)  # the token moved since the first open's listing: listed once more
     calls = count_sidecar_reads(monkeypatch)
-    again = ArtifactsAPI(home)
-    assert calls["listings"] == 0 and late.id not in again.query("SELECT id FROM artifacts")["id"].tolist()
-    monkeypatch.setattr(catalogue_mod, "REMOTE_SYNC_INTERVAL_S", 0.0)
+    ArtifactsAPI(home)
+    assert calls["listings"] == 0  # nothing committed since
+    late = api.store.put_json({"b": 1}, "checkpoint", "b", parents=[(first.id, "data")])  # no row
+    before = dict(calls)
     fresh = ArtifactsAPI(home)
-    assert calls == {"listings": 1, "sidecars": 1}
+    # the new commit: one listing, and only its sidecar read
+    assert (calls["listings"] - before["listings"], calls["sidecars"] - before["sidecars"]) == (1, 1)
     assert [(r.id, r.roles) for r in fresh.ancestors(late.id)] == [(first.id, ["data"])]
+
+    # a store without a token (its writers predate it): listed at most once per interval
+    old_home = f"memory://capvector-sync-{uuid.uuid4().hex}"
+    writer = ArtifactsAPI(old_home)
+    base = writer.register_json({"a": 1}, "dataset", "a")
+    writer.store.fs.rm(writer.store._p("changes"))
+    monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "reader-cache"))
+    assert base.id in ArtifactsAPI(old_home).query("SELECT id FROM artifacts")["id"].tolist()
+    later = writer.store.put_json({"d": 1}, "checkpoint", "d", parents=[(base.id, "data")])
+    writer.store.fs.rm(writer.store._p("changes"))
+    assert later.id not in ArtifactsAPI(old_home).query("SELECT id FROM artifacts")["id"].tolist()
+    monkeypatch.setattr(catalogue_mod, "REMOTE_SYNC_INTERVAL_S", 0.0)
+    assert later.id in ArtifactsAPI(old_home).query("SELECT id FROM artifacts")["id"].tolist()
 
 
 # ---------------------------------------------------------------------------- the commands
