@@ -3,17 +3,15 @@
 An id is the sha256 of an artifact's content, so no path, host, time, pid or random value may enter
 the content; those are provenance and live in the sidecar record beside it. One fast test per place
 that used to leak such a value into content (the vector files' metadata, the evaluation document, the
-report), and the end-to-end check: two `capvector run --preset smoke` in two homes (slow).
+report). The end-to-end check, every artifact of a whole smoke run with the same id and record in two
+homes, is tests/test_concurrent_runs.py (its lone run's home against the shared one).
 """
 
 import json
 from datetime import datetime
 
-import pytest
 import torch
-from conftest import run_cli
 
-from artifacts.api import ArtifactsAPI
 from capvector_core.evaluation import EpisodeRecord, EvalConfig, EvalResult
 from capvector_core.safetensors_io import Checkpoint, write_checkpoint
 from tasks import reporting
@@ -111,25 +109,3 @@ def test_a_report_gives_the_same_id_whatever_the_measured_speeds(tmp_path):
         text = write_report(ws, report, tmp_path / ws.home / "report.md").read_text()
         assert f"| {1000 / speed:.1f} | {20 / speed:.0f} | 123 | 0.0003 | 1 |" in text  # from the sidecar
     assert ids[0] == ids[1]
-
-
-@pytest.mark.slow
-def test_two_smoke_runs_in_two_homes_give_identical_ids_for_every_artifact(tmp_path):
-    """Done-when of the issue: every id `capvector run --json` prints, and every artifact in the two
-    catalogues, is the same in both homes (~3 minutes on 2 cores)."""
-    homes = [tmp_path / "home_a", tmp_path / "home_b"]
-    outputs = [json.loads(run_cli("run", "--preset", "smoke", "--json", home=h).stdout) for h in homes]
-    assert outputs[0] == outputs[1]
-    catalogues = []
-    for home in homes:
-        frame = ArtifactsAPI(str(home)).query("SELECT id, kind, name FROM artifacts ORDER BY id")
-        catalogues.append(sorted(map(tuple, frame.values.tolist())))
-    assert catalogues[0] == catalogues[1]
-    printed = _ids_in(outputs[0])
-    assert printed and printed <= {row[0] for row in catalogues[0]}
-
-
-def _ids_in(value) -> set[str]:
-    if isinstance(value, dict):
-        return set().union(*(_ids_in(v) for v in value.values())) if value else set()
-    return {value} if isinstance(value, str) and len(value) == 64 else set()
