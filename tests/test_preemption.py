@@ -8,8 +8,6 @@ uninterrupted run. The scratch folder is removed once the step's checkpoint is r
 """
 
 import json
-import logging
-import os
 import shutil
 import uuid
 from pathlib import Path
@@ -33,38 +31,6 @@ CONFIG = {"policy": {"type": "l1_chunk", **TINY}, "train": quick(**TRAIN).model_
 
 class Preempted(BaseException):
     """The node going away (like KeyboardInterrupt, nothing on the way catches it)."""
-
-
-@pytest.fixture(scope="module")
-def s3_endpoint():
-    """A moto S3 server on loopback; botocore (hence s3fs) finds it through AWS_ENDPOINT_URL."""
-    pytest.importorskip("moto.server")
-    s3fs = pytest.importorskip("s3fs")
-    from moto.server import ThreadedMotoServer
-
-    logging.getLogger("werkzeug").setLevel(logging.WARNING)
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    env = {
-        "AWS_ENDPOINT_URL": f"http://{host}:{port}",
-        "AWS_ACCESS_KEY_ID": "testing",
-        "AWS_SECRET_ACCESS_KEY": "testing",
-        "AWS_DEFAULT_REGION": "us-east-1",
-    }
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    s3fs.S3FileSystem.clear_instance_cache()
-    try:
-        yield env["AWS_ENDPOINT_URL"]
-    finally:
-        s3fs.S3FileSystem.clear_instance_cache()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-        server.stop()
 
 
 @pytest.fixture

@@ -7,7 +7,6 @@ local cache for a remote home) lists the lineage and is rebuilt from the store a
 """
 
 import json
-import logging
 import os
 import uuid
 from pathlib import Path
@@ -26,37 +25,6 @@ from artifacts.store import ArtifactStore  # noqa: E402
 from flows.cli import app  # noqa: E402
 
 TABLES = ["artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs"]
-
-
-@pytest.fixture(scope="module")
-def s3_endpoint():
-    """A moto S3 server on loopback; botocore (hence s3fs) finds it through AWS_ENDPOINT_URL."""
-    import s3fs
-    from moto.server import ThreadedMotoServer
-
-    logging.getLogger("werkzeug").setLevel(logging.WARNING)
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    env = {
-        "AWS_ENDPOINT_URL": f"http://{host}:{port}",
-        "AWS_ACCESS_KEY_ID": "testing",
-        "AWS_SECRET_ACCESS_KEY": "testing",
-        "AWS_DEFAULT_REGION": "us-east-1",
-    }
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    s3fs.S3FileSystem.clear_instance_cache()
-    try:
-        yield env["AWS_ENDPOINT_URL"]
-    finally:
-        s3fs.S3FileSystem.clear_instance_cache()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-        server.stop()
 
 
 @pytest.fixture(params=["s3", "file"])
