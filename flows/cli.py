@@ -250,6 +250,29 @@ def _runner(
     return runner_config(kind, address, workers, cluster_class, cluster_kwargs)
 
 
+def _answer_or_run(
+    command: str,
+    home: str | None,
+    plan,
+    total: int,
+    label: str,
+    dry_run: bool,
+    flow_fn,
+    config,
+    runner_config,
+) -> Any:
+    """A planned command's result: from the content cache when it answers every step (no server, no
+    flow run), else from a flow run (server up, log opened, tagged with the command and preset)."""
+    result = _from_cache(command, resolve_home(home), plan, total, label, dry_run)
+    if result is None:
+        from flows.runs import run_tags
+
+        _preflight(command, home)
+        with run_tags(command.split()[0], config.name):
+            result = _on_runner(flow_fn, runner_config)(config.model_dump(mode="json"), resolve_home(home))
+    return result
+
+
 def _on_runner(flow_fn: Any, config: Any) -> Any:
     from flows.runners import build_runner
 
@@ -281,13 +304,10 @@ def run(
     home = resolve_home(home)
     command = f"run --preset {preset}"
     plan = lambda steps: run_pipeline(steps, config)  # noqa: E731
-    ids = _from_cache(command, home, plan, pipeline_steps(config), f"pipeline {config.name}", dry_run)
-    if ids is None:
-        from flows.runs import run_tags
-
-        _preflight(command, home)
-        with run_tags("run", config.name):
-            ids = _on_runner(pipeline, runner_config)(config.model_dump(mode="json"), home)
+    label = f"pipeline {config.name}"
+    ids = _answer_or_run(
+        command, home, plan, pipeline_steps(config), label, dry_run, pipeline, config, runner_config
+    )
     if as_json:
         _print_json(ids)
         return
@@ -415,13 +435,8 @@ def study(
     config = load_study(preset, overrides)
     command, label = f"study --preset {preset}", f"study {config.name}"
     plan = partial(plan_study, config)
-    result = _from_cache(command, resolve_home(home), plan, study_steps(config), label, dry_run)
-    if result is None:
-        from flows.runs import run_tags
-
-        _preflight(command, home)
-        with run_tags("study", config.name):
-            result = _on_runner(study_flow, runner_config)(config.model_dump(mode="json"), resolve_home(home))
+    total = study_steps(config)
+    result = _answer_or_run(command, home, plan, total, label, dry_run, study_flow, config, runner_config)
     ws = _workspace(home)
     written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
     if as_json:
@@ -458,15 +473,8 @@ def calibrate(
     config = load_calibration(preset, overrides)
     command, label = f"calibrate --preset {preset}", f"calibrate {config.name}"
     plan = partial(plan_calibration, config)
-    result = _from_cache(command, resolve_home(home), plan, calibration_steps(config), label, dry_run)
-    if result is None:
-        from flows.runs import run_tags
-
-        _preflight(command, home)
-        with run_tags("calibrate", config.name):
-            result = _on_runner(calibrate_flow, runner_config)(
-                config.model_dump(mode="json"), resolve_home(home)
-            )
+    total = calibration_steps(config)
+    result = _answer_or_run(command, home, plan, total, label, dry_run, calibrate_flow, config, runner_config)
     if as_json:
         _print_json({k: v for k, v in result.items() if k != "markdown"})
         return
