@@ -31,25 +31,12 @@ import pytest  # noqa: E402
 REPO = Path(__file__).resolve().parent.parent
 
 
-def run_cli(
-    *args: str, home: Path, check: bool = True, timeout: float = 900, env: dict[str, str] | None = None
-) -> subprocess.CompletedProcess:
-    """The real console entry point in a subprocess, as a user runs it.
-
-    Output goes through files, not pipes, and the command runs in its own session whose leftovers are
-    killed afterwards: a grandchild that outlives the command (Prefect's embedded API server on its
-    way down) must neither keep the test waiting for end-of-file nor linger.
-    """
-    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1", **(env or {})}
+def run_in_session(argv: list[str], env: dict[str, str], timeout: float) -> subprocess.CompletedProcess:
+    """`argv` in a session of its own, output through files, not pipes; the session's leftovers are
+    killed afterwards: a grandchild that outlives the command (Prefect's embedded API server on its way
+    down) must neither keep the test waiting for end-of-file nor linger."""
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "flows.cli", *args],
-            cwd=REPO,
-            env=env,
-            stdout=out,
-            stderr=err,
-            start_new_session=True,
-        )
+        proc = subprocess.Popen(argv, cwd=REPO, env=env, stdout=out, stderr=err, start_new_session=True)
         try:
             code = proc.wait(timeout=timeout)
         finally:
@@ -59,7 +46,15 @@ def run_cli(
                 pass
         out.seek(0)
         err.seek(0)
-        result = subprocess.CompletedProcess(args, code, out.read(), err.read())
+        return subprocess.CompletedProcess(argv, code, out.read(), err.read())
+
+
+def run_cli(
+    *args: str, home: Path, check: bool = True, timeout: float = 900, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
+    """The real console entry point in a subprocess, as a user runs it (`run_in_session`)."""
+    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1", **(env or {})}
+    result = run_in_session([sys.executable, "-m", "flows.cli", *args], env, timeout)
     if check and result.returncode != 0:
         raise AssertionError(
             f"capvector {' '.join(args)} failed ({result.returncode}):\n{result.stderr[-3000:]}"

@@ -9,14 +9,12 @@ error: the CLI printed that. Here a toy chain of three steps runs through the re
 """
 
 import os
-import signal
 import subprocess
 import sys
-import tempfile
 import textwrap
 
 import pytest
-from conftest import REPO
+from conftest import REPO, run_in_session
 
 TOY_CLI = textwrap.dedent(
     """
@@ -70,21 +68,7 @@ def _toy_cli(tmp_path, *args: str) -> subprocess.CompletedProcess:
         "PYTHONPATH": str(REPO),
     }
     env.pop("CAPVECTOR_DEBUG", None)
-    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(
-            [sys.executable, str(script), *args], cwd=REPO, env=env, stdout=out, stderr=err,
-            start_new_session=True,
-        )  # fmt: skip
-        try:
-            code = proc.wait(timeout=300)
-        finally:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        out.seek(0)
-        err.seek(0)
-        return subprocess.CompletedProcess(args, code, out.read(), err.read())
+    return run_in_session([sys.executable, str(script), *args], env, timeout=300)
 
 
 @pytest.mark.parametrize("runner", ["process", "thread"])
