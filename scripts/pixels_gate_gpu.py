@@ -1,0 +1,286 @@
+"""The pixels study's gate phase in one command, sized for a borrowed GPU machine (no Prefect there).
+
+The study flow needs Prefect, DuckDB and a catalogue; a lent GPU machine has none of them and is held
+for minutes. This script runs the same recipe's gate phase from `capvector_core` alone: pixels
+observations (64×64 corner2 images + proprioception), the `spatial_depth` objective, the control
+study's calibrated splits, and the four arms the gate needs (SFT, auxiliary SFT, SFT from θ_ao, SFT
+from θ_ft), plus θ_ao vs θ_ft on D_ext validation goals (precondition b). Training runs on the GPU while
+a process pool rolls out each finished checkpoint on the CPUs. Every episode is appended to
+`<out>/episodes.jsonl` as it finishes (a run cut short still returns what it measured); `docs/` is
+written from those records on a workstation by `scripts/pixels_gate_report.py`.
+
+Nothing is chosen here: every value (aux weight 0.5, lr, budgets) is declared below before a rollout.
+
+    MUJOCO_GL=egl python scripts/pixels_gate_gpu.py --out /tmp/gate --scale tiny   # a CPU dry run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from concurrent.futures import Future, ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+
+import torch
+
+from capvector_core.demos import VALIDATION_SEED_BASE, DemoConfig, DemoDataset, collect_demos
+from capvector_core.evaluation import EvalConfig, evaluate
+from capvector_core.policy import build_policy, load_policy
+from capvector_core.trainer import AuxConfig, TrainConfig, train
+
+PRETRAIN = [
+    "reach-v3",
+    "push-v3",
+    "pick-place-v3",
+    "door-open-v3",
+    "drawer-open-v3",
+    "button-press-topdown-v3",
+    "window-open-v3",
+    "plate-slide-v3",
+]
+EXTRACTION = [
+    "button-press-v3",
+    "faucet-open-v3",
+    "handle-press-v3",
+    "door-close-v3",
+    "faucet-close-v3",
+    "door-unlock-v3",
+]
+DOWNSTREAM = [
+    "plate-slide-side-v3",
+    "drawer-close-v3",
+    "handle-press-side-v3",
+    "button-press-wall-v3",
+    "coffee-button-v3",
+    "window-close-v3",
+    "plate-slide-back-v3",
+]
+
+SCALES = {
+    "gpu": dict(
+        pretrain=PRETRAIN,
+        extraction=EXTRACTION,
+        downstream=DOWNSTREAM,
+        episodes=(10, 10, 5),
+        horizon=500,
+        batch=64,
+        pretrain_steps=2000,
+        extraction_steps=1000,
+        downstream_steps=400,
+        budgets=[100, 200, 400],
+        draws=[0, 1],
+        seeds=[0, 1, 2],
+        test_goals=20,
+        validation_goals=10,
+        eval_horizon=150,
+    ),
+    "tiny": dict(
+        pretrain=PRETRAIN[:2],
+        extraction=EXTRACTION[:1],
+        downstream=DOWNSTREAM[:1],
+        episodes=(1, 1, 1),
+        horizon=150,
+        batch=16,
+        pretrain_steps=6,
+        extraction_steps=4,
+        downstream_steps=4,
+        budgets=[2, 4],
+        draws=[0],
+        seeds=[0],
+        test_goals=2,
+        validation_goals=2,
+        eval_horizon=12,
+    ),
+}
+POLICY = {
+    "obs_mode": "pixels",
+    "image_size": 64,
+    "d_model": 128,
+    "n_layers": 4,
+    "n_heads": 4,
+    "chunk_size": 8,
+}
+AUX = AuxConfig(name="spatial_depth", weight=0.5)
+
+
+def train_config(
+    steps: int, batch: int, seed: int, aux: AuxConfig | None, snapshots: list[int] = ()
+) -> TrainConfig:
+    """The study-pixels preset's optimizer settings; the device is whatever the machine has."""
+    return TrainConfig(
+        steps=steps,
+        batch_size=batch,
+        lr=1e-3,
+        warmup_steps=min(50, steps // 10),
+        seed=seed,
+        aux=aux,
+        checkpoint_every=steps,
+        snapshot_steps=list(snapshots),
+        device="auto",
+    )
+
+
+def rollouts(path: str, config: dict, labels: dict) -> list[dict]:
+    """One checkpoint's episodes (in a pool worker, on one CPU thread): rows for the analysis."""
+    torch.set_num_threads(1)
+    policy = load_policy(path, device="cpu").eval()
+    result = evaluate(policy.predict_action_chunk, EvalConfig.model_validate(config))
+    base = config["seed_base"]
+    return [
+        {**labels, "task": e.task, "goal": e.seed - base, "success": int(e.success), "steps": e.steps}
+        for e in result.episodes
+    ]
+
+
+class Episodes:
+    """Submits evaluations to the pool and appends each one's rows to episodes.jsonl as it returns."""
+
+    def __init__(self, out: Path, pool: ProcessPoolExecutor):
+        self.path, self.pool, self.pending = out / "episodes.jsonl", pool, []
+
+    def submit(
+        self, path: Path, tasks: list[str], goals: int, seed_base: int, horizon: int, **labels
+    ) -> None:
+        config = {
+            "tasks": tasks,
+            "episodes_per_task": goals,
+            "seed_base": seed_base,
+            "horizon": horizon,
+            "obs_mode": "pixels",
+            "image_size": 64,
+            "execute_steps": 4,
+            "batch_size": 35,
+        }
+        future = self.pool.submit(rollouts, str(path), config, labels)
+        future.add_done_callback(self._append)
+        self.pending.append(future)
+
+    def _append(self, future: Future) -> None:
+        rows = future.result()
+        with self.path.open("a") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
+        print(
+            f"[{stamp()}] evaluated {rows[0]['arm']} draw {rows[0]['draw']} seed {rows[0]['seed']} "
+            f"@ {rows[0]['budget']}: {100 * sum(r['success'] for r in rows) / len(rows):.1f} %",
+            flush=True,
+        )
+
+    def wait(self) -> None:
+        for future in self.pending:
+            future.result()
+
+
+START = time.perf_counter()
+
+
+def stamp() -> str:
+    return f"{time.perf_counter() - START:6.1f} s"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/pixels-gate"))
+    ap.add_argument("--scale", choices=sorted(SCALES), default="gpu")
+    ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
+    args = ap.parse_args()
+    s = SCALES[args.scale]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "episodes.jsonl").unlink(missing_ok=True)
+    runs: dict[str, dict] = {}
+
+    def demos(split: str, tasks: list[str], episodes: int, depth: bool) -> DemoDataset:
+        t = time.perf_counter()
+        data = collect_demos(
+            DemoConfig(
+                tasks=tasks,
+                episodes_per_task=episodes,
+                obs_mode="pixels",
+                image_size=64,
+                horizon=s["horizon"],
+                workers=args.workers,
+                patch_xyz=depth,
+                patch_grid=4,
+            )
+        )
+        print(f"[{stamp()}] demos {split}: {len(data)} frames in {time.perf_counter() - t:.1f} s", flush=True)
+        return data
+
+    def fit(name: str, init: Path | None, data: DemoDataset, config: TrainConfig) -> dict:
+        torch.manual_seed(config.seed)
+        policy = build_policy(POLICY, device="auto") if init is None else load_policy(init, device="auto")
+        result = train(policy, data, config, args.work / name)
+        runs[name] = {
+            "steps_per_s": result.steps_per_s,
+            "final_loss": result.final_loss,
+            "device": result.execution.get("device"),
+        }
+        print(
+            f"[{stamp()}] trained {name}: {result.steps_per_s:.1f} steps/s, loss {result.final_loss:.4f}",
+            flush=True,
+        )
+        return {**{b: p for b, p in result.snapshots.items()}, config.steps: result.weights_path}
+
+    pre_n, ext_n, down_n = s["episodes"]
+    pre = demos("pretrain", s["pretrain"], pre_n, depth=False)
+    with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool:
+        episodes = Episodes(args.out, pool)
+        test = dict(
+            tasks=s["downstream"], goals=s["test_goals"], seed_base=100_000, horizon=s["eval_horizon"]
+        )
+        valid = dict(
+            tasks=s["extraction"],
+            goals=s["validation_goals"],
+            seed_base=VALIDATION_SEED_BASE,
+            horizon=s["eval_horizon"],
+        )
+        pt = fit("pt", None, pre, train_config(s["pretrain_steps"], s["batch"], 0, None))[s["pretrain_steps"]]
+        del pre
+        ext = demos("extraction", s["extraction"], ext_n, depth=True)
+        down = demos("downstream", s["downstream"], down_n, depth=True)
+        episodes.submit(pt, **test, arm="pt", draw=-1, seed=0, budget=0)
+        starts: dict[tuple[str, int], Path] = {}
+        for draw in s["draws"]:  # θ_ft^d and θ_ao^d: same θ_pt, same seed and batch order
+            for arm, aux in (("ft", None), ("ao", AUX)):
+                path = fit(
+                    f"{arm}{draw}", pt, ext, train_config(s["extraction_steps"], s["batch"], draw, aux)
+                )
+                starts[arm, draw] = path[s["extraction_steps"]]
+                episodes.submit(starts[arm, draw], **valid, arm=arm, draw=draw, seed=0, budget=0)
+        jobs = [("sft", -1, pt, None), ("aux", -1, pt, AUX)]
+        jobs += [
+            (f"sft_from_{arm}", draw, starts[arm, draw], None) for draw in s["draws"] for arm in ("ao", "ft")
+        ]
+        for arm, draw, init, aux in jobs:
+            if arm.startswith("sft_from"):
+                episodes.submit(init, **test, arm=arm, draw=draw, seed=0, budget=0)
+            for seed in s["seeds"]:
+                config = train_config(s["downstream_steps"], s["batch"], seed, aux, s["budgets"][:-1])
+                for budget, path in fit(f"{arm}-d{draw}-s{seed}", init, down, config).items():
+                    episodes.submit(path, **test, arm=arm, draw=draw, seed=seed, budget=budget)
+        left = sum(not f.done() for f in episodes.pending)
+        print(f"[{stamp()}] training done; waiting for {left} evaluations", flush=True)
+        episodes.wait()
+    (args.out / "runs.json").write_text(
+        json.dumps(
+            {
+                "scale": args.scale,
+                "settings": s,
+                "policy": POLICY,
+                "aux": AUX.model_dump(),
+                "runs": runs,
+                "wall_s": time.perf_counter() - START,
+                "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+            },
+            indent=1,
+            default=str,
+        )
+    )
+    print(f"[{stamp()}] done", flush=True)
+
+
+if __name__ == "__main__":
+    main()
