@@ -142,7 +142,7 @@ class Episodes:
         self.path, self.pool, self.pending = out / "episodes.jsonl", pool, []
 
     def submit(
-        self, path: Path, tasks: list[str], goals: int, seed_base: int, horizon: int, **labels
+        self, path: Path, tasks: list[str], goals: int, seed_base: int, horizon: int, split="test", **labels
     ) -> None:
         config = {
             "tasks": tasks,
@@ -154,7 +154,7 @@ class Episodes:
             "execute_steps": 4,
             "batch_size": 35,
         }
-        future = self.pool.submit(rollouts, str(path), config, labels)
+        future = self.pool.submit(rollouts, str(path), config, {"split": split, **labels})
         future.add_done_callback(self._append)
         self.pending.append(future)
 
@@ -186,6 +186,11 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/pixels-gate"))
     ap.add_argument("--scale", choices=sorted(SCALES), default="gpu")
     ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
+    ap.add_argument(
+        "--downstream-episodes", type=int, help="demos per downstream task (default: the scale's)"
+    )
+    ap.add_argument("--aux-weights", type=float, nargs="+", default=[AUX.weight], help="aux arms' weights")
+    ap.add_argument("--no-extraction", action="store_true", help="only SFT and the auxiliary arm(s)")
     args = ap.parse_args()
     s = SCALES[args.scale]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -225,35 +230,36 @@ def main() -> None:
         return {**{b: p for b, p in result.snapshots.items()}, config.steps: result.weights_path}
 
     pre_n, ext_n, down_n = s["episodes"]
+    down_n = args.downstream_episodes or down_n
     pre = demos("pretrain", s["pretrain"], pre_n, depth=False)
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool:
         episodes = Episodes(args.out, pool)
-        test = dict(
-            tasks=s["downstream"], goals=s["test_goals"], seed_base=100_000, horizon=s["eval_horizon"]
-        )
-        valid = dict(
-            tasks=s["extraction"],
-            goals=s["validation_goals"],
-            seed_base=VALIDATION_SEED_BASE,
-            horizon=s["eval_horizon"],
-        )
+        horizon = s["eval_horizon"]
+        test = dict(tasks=s["downstream"], goals=s["test_goals"], seed_base=100_000, horizon=horizon)
+        valid = dict(tasks=s["extraction"], goals=s["validation_goals"], seed_base=VALIDATION_SEED_BASE)
+        valid_down = dict(valid, tasks=s["downstream"], horizon=horizon, split="validation")
+        valid = dict(valid, horizon=horizon, split="validation")
         pt = fit("pt", None, pre, train_config(s["pretrain_steps"], s["batch"], 0, None))[s["pretrain_steps"]]
         del pre
-        ext = demos("extraction", s["extraction"], ext_n, depth=True)
+        ext = None if args.no_extraction else demos("extraction", s["extraction"], ext_n, depth=True)
         down = demos("downstream", s["downstream"], down_n, depth=True)
         episodes.submit(pt, **test, arm="pt", draw=-1, seed=0, budget=0)
         starts: dict[tuple[str, int], Path] = {}
-        for draw in s["draws"]:  # θ_ft^d and θ_ao^d: same θ_pt, same seed and batch order
+        for draw in (
+            [] if ext is None else s["draws"]
+        ):  # θ_ft^d and θ_ao^d: same θ_pt, same seed and batch order
             for arm, aux in (("ft", None), ("ao", AUX)):
                 path = fit(
                     f"{arm}{draw}", pt, ext, train_config(s["extraction_steps"], s["batch"], draw, aux)
                 )
                 starts[arm, draw] = path[s["extraction_steps"]]
                 episodes.submit(starts[arm, draw], **valid, arm=arm, draw=draw, seed=0, budget=0)
-        jobs = [("sft", -1, pt, None), ("aux", -1, pt, AUX)]
-        jobs += [
-            (f"sft_from_{arm}", draw, starts[arm, draw], None) for draw in s["draws"] for arm in ("ao", "ft")
+        aux_arms = [
+            ("aux" if len(args.aux_weights) == 1 else f"aux@{w:g}", AUX.model_copy(update={"weight": w}))
+            for w in args.aux_weights
         ]
+        jobs = [("sft", -1, pt, None)] + [(arm, -1, pt, aux) for arm, aux in aux_arms]
+        jobs += [(f"sft_from_{arm}", draw, starts[arm, draw], None) for arm, draw in starts]
         for arm, draw, init, aux in jobs:
             if arm.startswith("sft_from"):
                 episodes.submit(init, **test, arm=arm, draw=draw, seed=0, budget=0)
@@ -261,6 +267,8 @@ def main() -> None:
                 config = train_config(s["downstream_steps"], s["batch"], seed, aux, s["budgets"][:-1])
                 for budget, path in fit(f"{arm}-d{draw}-s{seed}", init, down, config).items():
                     episodes.submit(path, **test, arm=arm, draw=draw, seed=seed, budget=budget)
+                    if len(aux_arms) > 1 and draw == -1:  # the aux weight is chosen on validation goals
+                        episodes.submit(path, **valid_down, arm=arm, draw=draw, seed=seed, budget=budget)
         left = sum(not f.done() for f in episodes.pending)
         print(f"[{stamp()}] training done; waiting for {left} evaluations", flush=True)
         episodes.wait()
@@ -271,6 +279,8 @@ def main() -> None:
                 "settings": s,
                 "policy": POLICY,
                 "aux": AUX.model_dump(),
+                "aux_weights": args.aux_weights,
+                "downstream_episodes": down_n,
                 "runs": runs,
                 "wall_s": time.perf_counter() - START,
                 "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
