@@ -190,9 +190,15 @@ def main() -> None:
         "--downstream-episodes", type=int, help="demos per downstream task (default: the scale's)"
     )
     ap.add_argument("--aux-weights", type=float, nargs="+", default=[AUX.weight], help="aux arms' weights")
+    ap.add_argument("--downstream-steps", type=int, help="final budget; the others at 1/4 and 1/2 of it")
+    ap.add_argument("--seeds", type=int, nargs="+", help="downstream training seeds (default: the scale's)")
     ap.add_argument("--no-extraction", action="store_true", help="only SFT and the auxiliary arm(s)")
     args = ap.parse_args()
-    s = SCALES[args.scale]
+    s = dict(SCALES[args.scale])
+    if args.downstream_steps:
+        steps = args.downstream_steps
+        s.update(downstream_steps=steps, budgets=[steps // 4, steps // 2, steps])
+    s["seeds"] = args.seeds or s["seeds"]
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "episodes.jsonl").unlink(missing_ok=True)
     runs: dict[str, dict] = {}
