@@ -34,11 +34,11 @@ TITLES = {
 COLOURS = {"sft": "#4c72b0", "aux": "#dd8452", "sft_from_ao": "#55a868", "sft_from_ft": "#8c8c8c"}
 
 
-def load(name: str) -> tuple[pd.DataFrame, dict]:
-    episodes = pd.read_json(DOCS / "data" / f"pixels_gpu_{name}.jsonl.gz", lines=True)
+def load(docs: Path, name: str) -> tuple[pd.DataFrame, dict]:
+    episodes = pd.read_json(docs / "data" / f"pixels_gpu_{name}.jsonl.gz", lines=True)
     if "split" not in episodes:  # run 1 predates the column: D_ext rows (ao, ft) are validation goals
         episodes["split"] = episodes["arm"].map(lambda a: "validation" if a in ("ao", "ft") else "test")
-    return episodes, json.loads((DOCS / "data" / f"pixels_gpu_{name}_runs.json").read_text())
+    return episodes, json.loads((docs / "data" / f"pixels_gpu_{name}_runs.json").read_text())
 
 
 def with_endpoint(episodes: pd.DataFrame, budgets: list[int]) -> pd.DataFrame:
@@ -66,11 +66,12 @@ def curve_rows(test: pd.DataFrame, arms: list[str], budgets: list[int]) -> list[
     return lines
 
 
-def main() -> None:
+def main(docs: Path = DOCS, out: Path = DOCS) -> Path:
+    """Reads `docs`/data, writes the report and its figure into `out`; returns the report's path."""
     sections, figure_data = [], {}
     headline = {}
     for name, title in RUNS.items():
-        episodes, runs = load(name)
+        episodes, runs = load(docs, name)
         budgets = runs["settings"]["budgets"]
         test = with_endpoint(episodes[(episodes["split"] == "test") & (episodes["arm"] != "pt")], budgets)
         aux = chosen_weight(episodes, budgets) if name == "scarce" else "aux"
@@ -101,12 +102,14 @@ def main() -> None:
         lines += ["", f"θ_pt before downstream training: {pt:.1f} %. {wall}", ""]
         sections += lines
         figure_data[name] = (test, arms, budgets, aux)
-    draw(figure_data, DOCS / "study_pixels_gpu_curves.png")
+    draw(figure_data, out / "study_pixels_gpu_curves.png")
     text = TEMPLATE.format(
         gate=cell(headline["gate"]), scarce=cell(headline["scarce"]), long=cell(headline["long"])
     )
-    (DOCS / "study_pixels_gpu.md").write_text(text + "\n".join(sections) + "\n")
-    print(f"wrote {DOCS / 'study_pixels_gpu.md'}")
+    report = out / "study_pixels_gpu.md"
+    report.write_text(text + "\n".join(sections) + "\n")
+    print(f"wrote {report}")
+    return report
 
 
 def draw(data: dict, path: Path) -> None:
