@@ -46,6 +46,17 @@ def run_tags(command: str, preset: str | None = None) -> Any:
     return tags("capvector", command, *([preset] if preset else []))
 
 
+def untagged_steps() -> Any:
+    """Step (task) runs carry no tags; flow runs keep theirs (the UI filters runs by them). Prefect
+    acquires a concurrency slot over the API for every tag of every task run: a round trip per step
+    for limits capvector never sets, and on a long-lived Dask worker the slot service (cached per set
+    of tag names) keeps the API client of the first run it served, so a second CLI run on the same
+    cluster, with its own run server, failed every step (ConcurrencySlotAcquisitionError)."""
+    from prefect.context import TagsContext
+
+    return TagsContext(current_tags=set())
+
+
 def publish_markdown(key: str, markdown: str, description: str) -> None:
     """A Markdown artifact in the Prefect UI (a no-op cost on the embedded API)."""
     create_markdown_artifact(markdown=markdown, key=artifact_key(key), description=description)

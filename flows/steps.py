@@ -21,6 +21,7 @@ from typing import Any
 from prefect.futures import PrefectFuture
 
 from flows.runners import placement
+from flows.runs import untagged_steps
 from tasks.progress import emit
 
 
@@ -44,7 +45,8 @@ class StepRunner:
         """The step's artifact id (a content-cache hit, run here) or a future (run by a worker)."""
         if all(isinstance(v, str) for v in inputs.values()):
             if step_task.cached_id(self.home, step, inputs, config) is not None:
-                state = step_task(self.home, step, inputs, config, return_state=True)
+                with untagged_steps():
+                    state = step_task(self.home, step, inputs, config, return_state=True)
                 try:
                     artifact_id = state.result()
                 except Exception as exc:
@@ -52,7 +54,7 @@ class StepRunner:
                     raise
                 self._report(step, "cached")
                 return artifact_id
-        with placement(config):  # what the step asks of the engine: a GPU worker for a cuda step
+        with untagged_steps(), placement(config):  # a cuda step asks the engine for a GPU worker
             future = step_task.submit(self.home, step, inputs, config)
         future.add_done_callback(lambda f: self._on_done(step, f))
         return future

@@ -47,12 +47,14 @@ def main(address: str, n: int) -> None:
 
     from flows.run_server import wait_for_api
     from flows.runners import RunnerConfig, build_runner
+    from flows.runs import run_tags
 
     wait_for_api()
 
     runner = build_runner(RunnerConfig(kind="dask", address=address))
     probe_flow = flow(name="placement-probe", persist_result=False)(probe).with_options(task_runner=runner)
-    print(json.dumps(probe_flow(n)))
+    with run_tags("placement-probe"):  # tagged as the CLI tags its runs
+        print(json.dumps(probe_flow(n)))
 
 
 if __name__ == "__main__":
