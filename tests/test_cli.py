@@ -587,7 +587,7 @@ def test_read_only_commands_import_neither_torch_pandas_prefect_nor_metaworld(tm
 
 
 def test_sql_prints_whole_values_aligned_without_pandas(tmp_path):
-    from flows.cli import text_table
+    from flows.cli_common import text_table
 
     assert text_table(["a", "name"], [(1, "x"), (10, None)]).splitlines() == [
         " a  name",

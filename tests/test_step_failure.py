@@ -21,6 +21,8 @@ TOY_CLI = textwrap.dedent(
     from prefect import flow
 
     from flows import cli
+    from flows.flow_commands import FLOW_COMMANDS, preflight
+    from flows.home import resolve_home
     from flows.runners import RunnerConfig, build_runner
     from flows.steps import StepRunner, resolve
     from tasks.prefect_task import pipeline_task
@@ -44,13 +46,13 @@ TOY_CLI = textwrap.dedent(
 
     @cli.app.command("toy-chain")
     def toy_chain(runner: str = "process") -> None:
-        home = cli.resolve_home(None)
-        cli._preflight("toy-chain", home)
+        home = resolve_home(None)
+        preflight("toy-chain", home)
         chain.with_options(task_runner=build_runner(RunnerConfig(kind=runner, workers=1)))(home)
 
 
     if __name__ == "__main__":
-        cli.FLOW_COMMANDS.add("toy-chain")
+        FLOW_COMMANDS.add("toy-chain")
         cli.main()
     """
 )

@@ -1,0 +1,403 @@
+"""The commands that run a flow: run, evaluate, reevaluate, study, calibrate, sweep, schedule.
+
+A planned command first asks the content cache (`_from_cache`): when every step is cached it answers at
+once, with no Prefect server, flow run or worker; otherwise the run's server is started and the flow
+runs on the runner its options name (flows.runners). Heavy imports happen inside each command.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from flows.cli_common import (
+    AddressOption,
+    ClusterClassOption,
+    ClusterKwargsOption,
+    DryRunOption,
+    HomeOption,
+    JsonOption,
+    RunnerOption,
+    SetOption,
+    Table,
+    WorkersOption,
+    console,
+    print_json,
+    workspace,
+)
+from flows.home import resolve_home
+
+# Commands that run a flow: they get the run's one Prefect API server (flows.run_server). Its address
+# is reserved before Prefect is imported; the process starts when a flow is sure to run.
+FLOW_COMMANDS = {"run", "study", "calibrate", "evaluate", "reevaluate", "sweep", "schedule"}
+
+
+def _boot_server() -> None:
+    """Spawn the run's reserved Prefect server now, so that it boots while the command imports torch
+    and the flows: for a command sure to run a flow (evaluate, reevaluate, sweep; run and study on a
+    new home). Otherwise `_preflight` starts it, once the content cache has not answered the plan."""
+    from flows.run_server import start_server_now
+
+    start_server_now()
+
+
+def _new_home(home: str | None, dry_run: bool) -> bool:
+    """A local home that does not exist yet, for a run that is not a dry run: nothing is cached."""
+    if dry_run:
+        return False
+    from artifacts.home import is_local
+
+    home = resolve_home(home)
+    return is_local(home) and not Path(home).exists()
+
+
+def preflight(command: str, home: str | None) -> None:
+    """Before any flow: the run's Prefect server is started (if not yet) and up (a configured but
+    unreachable one is an error naming its address, not a hang); progress goes to a log file as well
+    as the terminal."""
+    from flows.run_server import wait_for_api
+    from tasks.prefect_task import quiet_failed_run_logs
+
+    wait_for_api()  # first: an unreachable server must leave no home behind
+    _start_log(command, home)
+    quiet_failed_run_logs()  # main() prints a failing run's error, in one line
+
+
+def _start_log(command: str, home: str | None) -> None:
+    """Progress to a log file in the home as well as the terminal (step workers inherit the path)."""
+    from tasks.progress import LOG_FILE_ENV, emit
+
+    if not os.environ.get(LOG_FILE_ENV):
+        from datetime import UTC, datetime
+
+        logs = workspace(home).local_root / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        slug = "-".join(command.replace("--preset", "").split())
+        os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
+        from flows.housekeeping import prune_on_start
+
+        prune_on_start(resolve_home(home))  # logs stay bounded (~2 ms; the new one is always kept)
+    emit(f"capvector {command}: home {resolve_home(home)}, log {os.environ[LOG_FILE_ENV]}")
+
+
+def _from_cache(command: str, home: str, plan, total: int, label: str, dry_run: bool = False):
+    """Know before starting: the plan's result when the content cache answers every step (no Prefect
+    run, server wait or worker), else None. `dry_run` prints the plan's cache status and exits."""
+    from flows.steps import CacheProbe, NotAllCached
+
+    if _new_home(home, dry_run):
+        return None  # a new home caches nothing (and an unreachable server must leave none behind)
+    probe = CacheProbe(home, total, label)
+    try:
+        result, missing = plan(probe), None
+    except NotAllCached as exc:
+        result, missing = None, str(exc)
+    if dry_run:
+        for step, artifact_id in probe.answered:
+            typer.echo(f"cached  {artifact_id[:12]}  {step}")
+        if missing is None:
+            typer.echo(f"all {total} steps cached: `capvector {command}` prints its result at once")
+        else:
+            todo = total - len(probe.answered)
+            typer.echo(f"to run  {missing}, then what depends on it ({todo} of {total} steps to run)")
+        raise typer.Exit(0)
+    if missing is None:
+        _start_log(command, home)
+        probe.replay()
+    return result
+
+
+def _runner(
+    runner: str | None,
+    address: str | None,
+    workers: int,
+    cluster_class: str | None,
+    cluster_kwargs: str | None,
+    default: str = "process",
+):
+    """The runner options, checked before anything runs (a bad one exits 2 naming the problem)."""
+    from flows.runners import runner_config
+
+    kind = runner or default
+    if kind == "thread" and default != "thread":
+        raise ValueError("--runner thread is for evaluate and reevaluate: training steps need processes")
+    return runner_config(kind, address, workers, cluster_class, cluster_kwargs)
+
+
+def _answer_or_run(
+    command: str,
+    home: str | None,
+    plan,
+    total: int,
+    label: str,
+    dry_run: bool,
+    flow_fn,
+    config,
+    runner_config,
+) -> Any:
+    """A planned command's result: from the content cache when it answers every step (no server, no
+    flow run), else from a flow run (server up, log opened, tagged with the command and preset)."""
+    result = _from_cache(command, resolve_home(home), plan, total, label, dry_run)
+    if result is None:
+        from flows.runs import run_tags
+
+        preflight(command, home)
+        with run_tags(command.split()[0], config.name):
+            result = _on_runner(flow_fn, runner_config)(config.model_dump(mode="json"), resolve_home(home))
+    return result
+
+
+def _on_runner(flow_fn: Any, config: Any) -> Any:
+    from flows.runners import build_runner
+
+    return flow_fn.with_options(task_runner=build_runner(config))
+
+
+def run(
+    preset: Annotated[str, typer.Option(help="smoke | quick | paper | path to a YAML file")] = "quick",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+    dry_run: DryRunOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
+) -> None:
+    """Run the whole recipe (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> eval -> report."""
+    if _new_home(home, dry_run):
+        _boot_server()
+    from flows.config import load_config
+    from flows.pipeline import pipeline, pipeline_steps, run_pipeline
+
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
+    config = load_config(preset, overrides)
+    home = resolve_home(home)
+    command = f"run --preset {preset}"
+    plan = lambda steps: run_pipeline(steps, config)  # noqa: E731
+    label = f"pipeline {config.name}"
+    ids = _answer_or_run(
+        command, home, plan, pipeline_steps(config), label, dry_run, pipeline, config, runner_config
+    )
+    if as_json:
+        print_json(ids)
+        return
+    from tasks.reporting import load_report, markdown_table, timings
+
+    ws = workspace(home)
+    report = load_report(ws, ids["report"])
+    console.print(markdown_table(report, timings(ws, report)))  # speeds: from the records
+    console.print(f"report: {ids['report']}   (capvector report {ids['report'][:12]})")
+
+
+def evaluate(
+    checkpoints: Annotated[list[str], typer.Argument(help="checkpoint artifact ids (or unique prefixes)")],
+    tasks: Annotated[str, typer.Option(help="comma-separated Meta-World task names")],
+    episodes: Annotated[int, typer.Option(help="episodes (goal variations) per task")] = 20,
+    horizon: int = 500,
+    execute_steps: Annotated[int, typer.Option(help="actions executed per predicted chunk")] = 1,
+    obs_mode: str = "state",
+    camera: Annotated[str, typer.Option(help="pixels: camera (another tests generalization)")] = "corner2",
+    image_size: Annotated[int, typer.Option(help="image side for pixels policies")] = 64,
+    video: Annotated[int, typer.Option(help="episodes per task recorded as GIF video artifacts")] = 0,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Evaluate checkpoints on any tasks under one protocol (test seeds, disjoint from demo seeds)."""
+    _boot_server()
+    from capvector_core.evaluation import EvalConfig
+    from flows.evaluation_flows import evaluate_flow
+
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs, default="thread")
+    preflight("evaluate", home)
+    config = EvalConfig(
+        tasks=[t.strip() for t in tasks.split(",") if t.strip()],
+        episodes_per_task=episodes,
+        horizon=horizon,
+        execute_steps=execute_steps,
+        obs_mode=obs_mode,
+        camera=camera,
+        image_size=image_size,
+        record_video=video,
+    )
+    flow_fn = _on_runner(evaluate_flow, runner_config)
+    from flows.runs import run_tags
+
+    with run_tags("evaluate"):
+        result = flow_fn(resolve_home(home), checkpoints, config.model_dump(mode="json"))
+    from artifacts.scores import read_scores
+
+    scores = {s.evaluation_id: s for s in read_scores(workspace(home).api, evaluations=result.values())}
+    if as_json:
+        print_json([{"checkpoint": c, "evaluation": e, **scores[e].model_dump()} for c, e in result.items()])
+        return
+    table = Table("checkpoint", "evaluation", "mean success", "per task")
+    for c, e in result.items():
+        per_task = ", ".join(f"{t}: {100 * v:.0f}%" for t, v in scores[e].success_rates.items())
+        table.add_row(c[:12], e[:12], f"{100 * scores[e].mean_success:.1f}%", per_task)
+    console.print(table)
+
+
+def reevaluate(
+    query: Annotated[
+        str | None, typer.Option(help="read-only SQL whose first column is checkpoint ids")
+    ] = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
+) -> None:
+    """Re-run the evaluations of the selected checkpoints under the installed library versions."""
+    _boot_server()
+    from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
+
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs, default="thread")
+    preflight("reevaluate", home)
+    from flows.runs import run_tags
+
+    with run_tags("reevaluate"):
+        changes = _on_runner(reevaluate_flow, runner_config)(resolve_home(home), query or DEFAULT_SELECTION)
+    if as_json:
+        print_json(changes)
+    else:
+        console.print(summary_markdown(changes) if changes else "nothing selected")
+
+
+def study(
+    preset: Annotated[
+        str,
+        typer.Option(help="study-control-small | study-control | study-state | study-pixels | a YAML path"),
+    ] = "study-control-small",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(help="write the Markdown report and its figures here (default: <home>/reports/)"),
+    ] = None,
+    as_json: JsonOption = False,
+    dry_run: DryRunOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
+) -> None:
+    """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
+    if _new_home(home, dry_run):
+        _boot_server()
+    from functools import partial
+
+    from flows.study import plan_study, study_flow, study_steps
+    from flows.study_config import load_study
+    from flows.study_figures import default_report_path, write_study_report
+
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
+    config = load_study(preset, overrides)
+    command, label = f"study --preset {preset}", f"study {config.name}"
+    plan = partial(plan_study, config)
+    total = study_steps(config)
+    result = _answer_or_run(command, home, plan, total, label, dry_run, study_flow, config, runner_config)
+    ws = workspace(home)
+    written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
+    if as_json:
+        print_json({**{k: v for k, v in result.items() if k != "markdown"}, "report_file": str(written)})
+        return
+    typer.echo(result["markdown"])  # Markdown as written (a console would re-wrap its tables)
+    typer.echo(f"study: {result['report']}   (capvector lineage {result['report'][:12]})")
+    typer.echo(f"report and figures: {written}")
+
+
+def calibrate(
+    preset: Annotated[str, typer.Option(help="calibrate-control | a YAML path")] = "calibrate-control",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+    dry_run: DryRunOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
+) -> None:
+    """Calibrate a testbed before a study: SFT curves per task on validation goals, the written rule,
+    the task sets, and the extraction budget at which held-out loss is flat (or the cap)."""
+    if _new_home(home, dry_run):
+        _boot_server()
+    from functools import partial
+
+    from flows.calibrate import calibrate_flow, calibration_steps, plan_calibration
+    from flows.calibrate_config import load_calibration
+
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
+    config = load_calibration(preset, overrides)
+    command, label = f"calibrate --preset {preset}", f"calibrate {config.name}"
+    plan = partial(plan_calibration, config)
+    total = calibration_steps(config)
+    result = _answer_or_run(command, home, plan, total, label, dry_run, calibrate_flow, config, runner_config)
+    if as_json:
+        print_json({k: v for k, v in result.items() if k != "markdown"})
+        return
+    typer.echo(result["markdown"])  # the preset lines to paste are in it
+    typer.echo(f"calibration: {result['calibration']}   (capvector lineage {result['calibration'][:12]})")
+
+
+def sweep(
+    preset: str = "quick",
+    overrides: SetOption = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+    runner: RunnerOption = None,
+    address: AddressOption = None,
+    workers: WorkersOption = 2,
+    cluster_class: ClusterClassOption = None,
+    cluster_kwargs: ClusterKwargsOption = None,
+) -> None:
+    """Grid over α and λ for the CapVector arm, picked on validation seeds (never the test seeds)."""
+    _boot_server()
+    from flows.config import load_config
+    from flows.sweep import sweep_flow, sweep_markdown
+
+    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
+    config = load_config(preset, overrides)
+    preflight(f"sweep --preset {preset}", home)
+    from flows.runs import run_tags
+
+    with run_tags("sweep", config.name):
+        result = _on_runner(sweep_flow, runner_config)(config.model_dump(mode="json"), resolve_home(home))
+    if as_json:
+        print_json(result)
+    else:
+        console.print(sweep_markdown(result))
+        console.print(
+            f"best: α={result['best']['alpha']} λ={result['best']['lambda']}  (sweep {result['sweep']})"
+        )
+
+
+def schedule(
+    cron: Annotated[str, typer.Option(help="cron expression, e.g. '0 3 * * *'")],
+    query: Annotated[str | None, typer.Option(help="selection SQL (first column: checkpoint ids)")] = None,
+    name: str = "scheduled-reevaluation",
+    home: HomeOption = None,
+    check: Annotated[bool, typer.Option("--check", help="validate and print, do not serve")] = False,
+) -> None:
+    """Serve the `reevaluate` deployment on a cron (needs PREFECT_API_URL for a persistent server)."""
+    from flows.schedules import build_deployment, serve_deployment
+
+    deployment = build_deployment(cron, resolve_home(home), query, name)
+    if check:
+        console.print(f"deployment {name!r}: cron {cron!r}, home {resolve_home(home)}")
+        return
+    serve_deployment(deployment)

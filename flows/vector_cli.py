@@ -1,0 +1,88 @@
+"""`capvector vector extract | merge | stats`: capability-vector arithmetic on safetensors checkpoints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from flows.cli_common import HomeOption, JsonOption, Table, console, print_json, workspace
+
+vector_app = typer.Typer(
+    no_args_is_help=True, help="Capability-vector arithmetic on safetensors checkpoints."
+)
+
+
+@vector_app.command("extract")
+def vector_extract(
+    minuend: Annotated[str, typer.Argument(help="θ_ao: file, sharded dir or artifact id")],
+    subtrahend: Annotated[str, typer.Argument(help="θ_ft: file, sharded dir or artifact id")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="*.safetensors = one file, else a sharded dir")],
+    base: Annotated[str | None, typer.Option(help="θ_pt the vector is meant for")] = None,
+    include: Annotated[list[str] | None, typer.Option(help="tensor-name globs to include")] = None,
+    exclude: Annotated[list[str] | None, typer.Option(help="tensor-name globs to exclude")] = None,
+    home: HomeOption = None,
+) -> None:
+    """γ = MINUEND − SUBTRAHEND, streamed tensor by tensor; registered in the catalogue."""
+    from tasks.vector_commands import extract_cli
+
+    record = extract_cli(workspace(home), minuend, subtrahend, out, base, include, exclude)
+    console.print(f"{out}  (artifact {record.id})")
+
+
+@vector_app.command("merge")
+def vector_merge(
+    base: Annotated[str, typer.Argument(help="θ_pt: file, sharded dir or artifact id")],
+    vectors: Annotated[list[str], typer.Option("--vector", help="a vector (repeatable)")],
+    alphas: Annotated[list[float], typer.Option("--alpha", help="its coefficient (one per --vector)")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="*.safetensors = one file, else a sharded dir")],
+    include: Annotated[list[str] | None, typer.Option(help="tensor-name globs to merge into")] = None,
+    exclude: Annotated[list[str] | None, typer.Option(help="tensor-name globs to keep from base")] = None,
+    force: Annotated[bool, typer.Option(help="merge even if a vector names another base")] = False,
+    home: HomeOption = None,
+) -> None:
+    """BASE + Σ α_i·vector_i, streamed; registered in the catalogue with an edge per vector."""
+    from tasks.vector_commands import merge_cli
+
+    if len(vectors) != len(alphas):
+        raise typer.BadParameter(f"{len(vectors)} --vector but {len(alphas)} --alpha: give one α per vector")
+    record = merge_cli(
+        workspace(home), base, list(zip(vectors, alphas, strict=True)), out, include, exclude, force
+    )
+    console.print(f"{out}  (artifact {record.id})")
+
+
+@vector_app.command("stats")
+def vector_stats(
+    vector: Annotated[str, typer.Argument(help="vector: file, sharded dir or artifact id")],
+    base: Annotated[str | None, typer.Option(help="θ_pt, for norms relative to the weights")] = None,
+    reference: Annotated[str | None, typer.Option(help="a reference vector, e.g. θ_ft − θ_pt")] = None,
+    level: Annotated[str, typer.Option(help="tensor | group | all")] = "group",
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Norms, relative norms, cosine and sign agreement per tensor / module group."""
+    from tasks.vector_commands import stats_cli
+
+    rows = stats_cli(workspace(home), vector, base, reference)
+    if as_json:
+        print_json([r.model_dump() for r in rows])
+        return
+    table = Table("name", "numel", "‖γ‖", "‖γ‖/‖θ‖", "cos(ref)", "sign agree")
+    for r in rows:
+        if r.level != level:
+            continue
+        table.add_row(
+            r.name,
+            f"{r.numel:,}",
+            f"{r.l2:.4g}",
+            _fmt(r.relative_norm),
+            _fmt(r.cosine),
+            _fmt(r.sign_agreement),
+        )
+    console.print(table)
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.4g}"
