@@ -278,10 +278,11 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
     cosines, noise = [], []
     for a, b in itertools.combinations(sorted(gammas), 2):
         ga, gb = (np.concatenate([gammas[x][n] for n in names]) for x in (a, b))
-        cosines.append(float(ga @ gb / (np.linalg.norm(ga) * np.linalg.norm(gb))))
+        cosines.append(_dot(ga, gb) / math.sqrt(_dot(ga, ga) * _dot(gb, gb)))
         if a in fts and b in fts:
-            noise.append(float(np.linalg.norm(np.concatenate([fts[a][n] - fts[b][n] for n in names]))))
-    norms = [float(np.linalg.norm(np.concatenate([g[n] for n in names]))) for g in gammas.values()]
+            gap = np.concatenate([fts[a][n] - fts[b][n] for n in names])
+            noise.append(math.sqrt(_dot(gap, gap)))
+    norms = [math.sqrt(_dot(g, g)) for g in (np.concatenate([g[n] for n in names]) for g in gammas.values())]
     values = {
         "mean_cosine": float(np.mean(cosines)),
         "gamma_norm": float(np.mean(norms)),
@@ -294,6 +295,13 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
         f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}"
     )
     return Precondition(key="e", claim=claim, holds=bool(holds), detail=detail, detail_values=values)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """a · b, correctly rounded (math.fsum): the same bits whatever BLAS threads the process has (a Dask
+    worker runs with one, the step pool with several; a BLAS dot changed the last digits, hence the
+    study's id)."""
+    return math.fsum(np.multiply(a, b))
 
 
 def _flat(checkpoint: Checkpoint, names: list[str] | None = None) -> dict[str, np.ndarray]:
