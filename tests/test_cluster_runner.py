@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -62,8 +63,9 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory):
-    """(scheduler address, {worker address: log}, GPU worker address): a scheduler and two workers."""
+def cluster(tmp_path_factory, s3_endpoint):
+    """(scheduler address, {worker address: log}, GPU worker address): a scheduler and two workers,
+    which reach the loopback S3 server (its address and keys are in their environment)."""
     from distributed import Client
 
     root = tmp_path_factory.mktemp("dask-cluster")
@@ -126,16 +128,31 @@ def test_cuda_steps_run_only_on_the_gpu_worker(cluster):
         assert set(cpu.values()) - {gpu}, ran_on  # the other worker took cpu steps: the GPU one was asked for
 
 
-def test_smoke_run_on_the_cluster_gives_the_process_pool_ids(cluster, smoke_home, tmp_path):
+def _lineage(home: str | Path, artifact_id: str, cache: Path | None = None) -> set[tuple[str, str]]:
+    env = {"CAPVECTOR_CACHE": str(cache)} if cache else None
+    rows = json.loads(run_cli("lineage", artifact_id, "--format", "json", home=home, env=env).stdout)
+    return {(row["id"], row["kind"]) for row in rows}
+
+
+def test_smoke_run_with_an_s3_home_on_the_cluster(cluster, smoke_home, tmp_path):
+    """The home on S3, the steps on the cluster's workers (each with its own local cache, as other
+    machines): the process pool's ids, lineage complete the moment the run returns, and a rerun, also
+    from a fresh driver that never saw the home, dispatches nothing."""
+    import boto3
+
     address, logs, _ = cluster
+    bucket = f"capvector-{uuid.uuid4().hex[:12]}"
+    boto3.client("s3").create_bucket(Bucket=bucket)
+    home = f"s3://{bucket}/home"
+    driver = {"CAPVECTOR_QUIET": "0", "CAPVECTOR_CACHE": str(tmp_path / "driver-cache")}
+    runner = ["--runner", "dask", "--address", address, "--json"]
+
     before = _executed(address)
     started = time.monotonic()
-    proc = run_cli(
-        "run", "--preset", "smoke", "--runner", "dask", "--address", address, "--json",
-        home=tmp_path / "home", env={"CAPVECTOR_QUIET": "0"}, timeout=600,
-    )  # fmt: skip
+    proc = run_cli("run", "--preset", "smoke", *runner, home=home, env=driver, timeout=600)
     elapsed = time.monotonic() - started
-    assert json.loads(proc.stdout) == smoke_home[1]
+    ids = json.loads(proc.stdout)
+    assert ids == smoke_home[1]
 
     from flows.config import load_config
 
@@ -149,7 +166,17 @@ def test_smoke_run_on_the_cluster_gives_the_process_pool_ids(cluster, smoke_home
     assert "[pipeline smoke 15/15]" in proc.stderr
     assert not re.search(r" - INFO - |\| INFO +\|", proc.stderr), proc.stderr[-3000:]
     assert "killed by signal" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-3000:]
-    print(f"smoke run on the dask cluster: {elapsed:.0f} s, steps per worker {ran}")
+
+    # what the workers registered is in the driver's catalogue at once: the local run's lineage
+    assert _lineage(home, ids["report"], tmp_path / "driver-cache") == _lineage(smoke_home[0], ids["report"])
+
+    for name, cache in (("rerun", "driver-cache"), ("fresh driver", "fresh-driver-cache")):
+        before = _executed(address)
+        env = {"CAPVECTOR_CACHE": str(tmp_path / cache)}
+        again = run_cli("run", "--preset", "smoke", *runner, home=home, env=env, timeout=600)
+        assert json.loads(again.stdout) == ids, name
+        assert _executed(address) == before, f"{name}: steps were sent to the workers again"
+    print(f"smoke run on the dask cluster with an S3 home: {elapsed:.0f} s, steps per worker {ran}")
 
 
 def test_runner_options_are_checked():
