@@ -38,7 +38,7 @@ FLOW_COMMANDS = {"run", "study", "calibrate", "evaluate", "reevaluate", "sweep",
 def _boot_server() -> None:
     """Spawn the run's reserved Prefect server now, so that it boots while the command imports torch
     and the flows: for a command sure to run a flow (evaluate, reevaluate, sweep; run and study on a
-    new home). Otherwise `_preflight` starts it, once the content cache has not answered the plan."""
+    new home). Otherwise `preflight` starts it, once the content cache has not answered the plan."""
     from flows.run_server import start_server_now
 
     start_server_now()
