@@ -42,35 +42,6 @@ SetOption = Annotated[list[str] | None, typer.Option("--set", help="override a c
 DryRunOption = Annotated[
     bool, typer.Option("--dry-run", help="print the plan's steps, cached or to run, and run nothing")
 ]
-# Where the steps run (flows.runners): the same five options on run, study, sweep, evaluate, reevaluate.
-RUNNER_PANEL = "Where steps run"
-RunnerOption = Annotated[
-    str | None,
-    typer.Option(
-        "--runner",
-        help="process (a pool of --workers, default) | dask | ray; evaluate, reevaluate: thread (default)",
-        rich_help_panel=RUNNER_PANEL,
-    ),
-]
-AddressOption = Annotated[
-    str | None,
-    typer.Option(
-        help="dask: tcp://host:port of a running scheduler; ray: its address", rich_help_panel=RUNNER_PANEL
-    ),
-]
-WorkersOption = Annotated[
-    int, typer.Option(help="worker processes of a pool or a local cluster", rich_help_panel=RUNNER_PANEL)
-]
-ClusterClassOption = Annotated[
-    str | None,
-    typer.Option(
-        help="dask: a cluster class to start, e.g. dask_jobqueue.SLURMCluster", rich_help_panel=RUNNER_PANEL
-    ),
-]
-ClusterKwargsOption = Annotated[
-    str | None,
-    typer.Option(help="dask: that cluster's keyword arguments, JSON", rich_help_panel=RUNNER_PANEL),
-]
 
 
 class State:

@@ -14,21 +14,17 @@ from typing import Annotated, Any
 import typer
 
 from flows.cli_common import (
-    AddressOption,
-    ClusterClassOption,
-    ClusterKwargsOption,
     DryRunOption,
     HomeOption,
     JsonOption,
-    RunnerOption,
     SetOption,
     Table,
-    WorkersOption,
     console,
     print_json,
     workspace,
 )
 from flows.home import resolve_home
+from flows.runner_options import runner_options
 
 # Commands that run a flow: they get the run's one Prefect API server (flows.run_server). Its address
 # is reserved before Prefect is imported; the process starts when a flow is sure to run.
@@ -111,23 +107,6 @@ def _from_cache(command: str, home: str, plan, total: int, label: str, dry_run: 
     return result
 
 
-def _runner(
-    runner: str | None,
-    address: str | None,
-    workers: int,
-    cluster_class: str | None,
-    cluster_kwargs: str | None,
-    default: str = "process",
-):
-    """The runner options, checked before anything runs (a bad one exits 2 naming the problem)."""
-    from flows.runners import runner_config
-
-    kind = runner or default
-    if kind == "thread" and default != "thread":
-        raise ValueError("--runner thread is for evaluate and reevaluate: training steps need processes")
-    return runner_config(kind, address, workers, cluster_class, cluster_kwargs)
-
-
 def _answer_or_run(
     command: str,
     home: str | None,
@@ -157,17 +136,14 @@ def _on_runner(flow_fn: Any, config: Any) -> Any:
     return flow_fn.with_options(task_runner=build_runner(config))
 
 
+@runner_options()
 def run(
     preset: Annotated[str, typer.Option(help="smoke | quick | paper | path to a YAML file")] = "quick",
     overrides: SetOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
-    runner: RunnerOption = None,
-    address: AddressOption = None,
-    workers: WorkersOption = 2,
-    cluster_class: ClusterClassOption = None,
-    cluster_kwargs: ClusterKwargsOption = None,
+    runner_config: Any = None,  # flows.runners.RunnerConfig, from the runner options
 ) -> None:
     """Run the whole recipe (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> eval -> report."""
     if _new_home(home, dry_run):
@@ -175,7 +151,6 @@ def run(
     from flows.config import load_config
     from flows.pipeline import pipeline, pipeline_steps, run_pipeline
 
-    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
     config = load_config(preset, overrides)
     home = resolve_home(home)
     command = f"run --preset {preset}"
@@ -195,6 +170,7 @@ def run(
     console.print(f"report: {ids['report']}   (capvector report {ids['report'][:12]})")
 
 
+@runner_options("thread")
 def evaluate(
     checkpoints: Annotated[list[str], typer.Argument(help="checkpoint artifact ids (or unique prefixes)")],
     tasks: Annotated[str, typer.Option(help="comma-separated Meta-World task names")],
@@ -205,20 +181,15 @@ def evaluate(
     camera: Annotated[str, typer.Option(help="pixels: camera (another tests generalization)")] = "corner2",
     image_size: Annotated[int, typer.Option(help="image side for pixels policies")] = 64,
     video: Annotated[int, typer.Option(help="episodes per task recorded as GIF video artifacts")] = 0,
-    runner: RunnerOption = None,
-    address: AddressOption = None,
-    workers: WorkersOption = 2,
-    cluster_class: ClusterClassOption = None,
-    cluster_kwargs: ClusterKwargsOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
+    runner_config: Any = None,  # flows.runners.RunnerConfig, from the runner options
 ) -> None:
     """Evaluate checkpoints on any tasks under one protocol (test seeds, disjoint from demo seeds)."""
     _boot_server()
     from capvector_core.evaluation import EvalConfig
     from flows.evaluation_flows import evaluate_flow
 
-    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs, default="thread")
     preflight("evaluate", home)
     config = EvalConfig(
         tasks=[t.strip() for t in tasks.split(",") if t.strip()],
@@ -248,23 +219,19 @@ def evaluate(
     console.print(table)
 
 
+@runner_options("thread")
 def reevaluate(
     query: Annotated[
         str | None, typer.Option(help="read-only SQL whose first column is checkpoint ids")
     ] = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
-    runner: RunnerOption = None,
-    address: AddressOption = None,
-    workers: WorkersOption = 2,
-    cluster_class: ClusterClassOption = None,
-    cluster_kwargs: ClusterKwargsOption = None,
+    runner_config: Any = None,  # flows.runners.RunnerConfig, from the runner options
 ) -> None:
     """Re-run the evaluations of the selected checkpoints under the installed library versions."""
     _boot_server()
     from flows.evaluation_flows import DEFAULT_SELECTION, reevaluate_flow, summary_markdown
 
-    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs, default="thread")
     preflight("reevaluate", home)
     from flows.runs import run_tags
 
@@ -276,6 +243,7 @@ def reevaluate(
         console.print(summary_markdown(changes) if changes else "nothing selected")
 
 
+@runner_options()
 def study(
     preset: Annotated[
         str,
@@ -289,11 +257,7 @@ def study(
     ] = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
-    runner: RunnerOption = None,
-    address: AddressOption = None,
-    workers: WorkersOption = 2,
-    cluster_class: ClusterClassOption = None,
-    cluster_kwargs: ClusterKwargsOption = None,
+    runner_config: Any = None,  # flows.runners.RunnerConfig, from the runner options
 ) -> None:
     """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
     if _new_home(home, dry_run):
@@ -304,7 +268,6 @@ def study(
     from flows.study_config import load_study
     from flows.study_figures import default_report_path, write_study_report
 
-    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
     config = load_study(preset, overrides)
     command, label = f"study --preset {preset}", f"study {config.name}"
     plan = partial(plan_study, config)
@@ -320,17 +283,14 @@ def study(
     typer.echo(f"report and figures: {written}")
 
 
+@runner_options()
 def calibrate(
     preset: Annotated[str, typer.Option(help="calibrate-control | a YAML path")] = "calibrate-control",
     overrides: SetOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
-    runner: RunnerOption = None,
-    address: AddressOption = None,
-    workers: WorkersOption = 2,
-    cluster_class: ClusterClassOption = None,
-    cluster_kwargs: ClusterKwargsOption = None,
+    runner_config: Any = None,  # flows.runners.RunnerConfig, from the runner options
 ) -> None:
     """Calibrate a testbed before a study: SFT curves per task on validation goals, the written rule,
     the task sets, and the extraction budget at which held-out loss is flat (or the cap)."""
@@ -341,7 +301,6 @@ def calibrate(
     from flows.calibrate import calibrate_flow, calibration_steps, plan_calibration
     from flows.calibrate_config import load_calibration
 
-    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
     config = load_calibration(preset, overrides)
     command, label = f"calibrate --preset {preset}", f"calibrate {config.name}"
     plan = partial(plan_calibration, config)
@@ -354,23 +313,19 @@ def calibrate(
     typer.echo(f"calibration: {result['calibration']}   (capvector lineage {result['calibration'][:12]})")
 
 
+@runner_options()
 def sweep(
     preset: str = "quick",
     overrides: SetOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
-    runner: RunnerOption = None,
-    address: AddressOption = None,
-    workers: WorkersOption = 2,
-    cluster_class: ClusterClassOption = None,
-    cluster_kwargs: ClusterKwargsOption = None,
+    runner_config: Any = None,  # flows.runners.RunnerConfig, from the runner options
 ) -> None:
     """Grid over α and λ for the CapVector arm, picked on validation seeds (never the test seeds)."""
     _boot_server()
     from flows.config import load_config
     from flows.sweep import sweep_flow, sweep_markdown
 
-    runner_config = _runner(runner, address, workers, cluster_class, cluster_kwargs)
     config = load_config(preset, overrides)
     preflight(f"sweep --preset {preset}", home)
     from flows.runs import run_tags

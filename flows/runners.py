@@ -27,6 +27,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from flows.runner_options import DEFAULT_WORKERS, RUNNER_FIELDS
+
 RunnerKind = Literal["process", "thread", "dask", "ray"]
 DASK_SCHEMES = ("tcp://", "tls://")
 RAY_HINT = "the ray runner needs prefect-ray: pip install prefect-ray"
@@ -36,11 +38,11 @@ class RunnerConfig(BaseModel):
     """What `--runner`, `--address`, `--workers`, `--cluster-class` and `--cluster-kwargs` say."""
 
     model_config = ConfigDict(extra="forbid")
-    kind: RunnerKind = "process"
-    address: str | None = None
-    workers: int = Field(2, ge=1)
-    cluster_class: str | None = None
-    cluster_kwargs: dict[str, Any] = Field(default_factory=dict)
+    kind: RunnerKind = Field("process", description=RUNNER_FIELDS["kind"])
+    address: str | None = Field(None, description=RUNNER_FIELDS["address"])
+    workers: int = Field(DEFAULT_WORKERS, ge=1, description=RUNNER_FIELDS["workers"])
+    cluster_class: str | None = Field(None, description=RUNNER_FIELDS["cluster_class"])
+    cluster_kwargs: dict[str, Any] = Field(default_factory=dict, description=RUNNER_FIELDS["cluster_kwargs"])
 
     @field_validator("cluster_class")
     @classmethod

@@ -1,0 +1,76 @@
+"""The options that say where a flow's steps run, declared once: `RUNNER_FIELDS` holds each
+`flows.runners.RunnerConfig` field's description (the model's field descriptions are these), and
+`runner_options` adds `--runner`, `--address`, `--workers`, `--cluster-class` and `--cluster-kwargs`
+to every command it decorates, the way mergekit adds its merge options from its config model. The
+command receives the checked `RunnerConfig` as `runner_config`; a bad value exits 2 naming the option,
+before any server, flow or worker starts. No pydantic here: `--help` and `sql` stay light."""
+
+from __future__ import annotations
+
+import functools
+import inspect
+from collections.abc import Callable
+from typing import Annotated, Any
+
+import typer
+
+RUNNER_PANEL = "Where steps run"
+DEFAULT_WORKERS = 2
+# RunnerConfig field -> its description (the option's help)
+RUNNER_FIELDS = {
+    "kind": "process (a pool of --workers, default) | dask | ray; evaluate, reevaluate: thread (default)",
+    "address": "dask: tcp://host:port of a running scheduler; ray: its address",
+    "workers": "worker processes of a pool or a local cluster",
+    "cluster_class": "dask: a cluster class to start, e.g. dask_jobqueue.SLURMCluster",
+    "cluster_kwargs": "dask: that cluster's keyword arguments, JSON",
+}
+# option name (as the command sees it) -> (flag, RunnerConfig field, type, default)
+_OPTIONS = {
+    "runner": ("--runner", "kind", str | None, None),
+    "address": ("--address", "address", str | None, None),
+    "workers": ("--workers", "workers", int, DEFAULT_WORKERS),
+    "cluster_class": ("--cluster-class", "cluster_class", str | None, None),
+    "cluster_kwargs": ("--cluster-kwargs", "cluster_kwargs", str | None, None),
+}
+
+
+def _parameter(name: str) -> inspect.Parameter:
+    flag, field, kind, default = _OPTIONS[name]
+    option = typer.Option(flag, help=RUNNER_FIELDS[field], rich_help_panel=RUNNER_PANEL)
+    return inspect.Parameter(
+        name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=Annotated[kind, option]
+    )
+
+
+def runner_options(default: str = "process") -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Add the runner options to a command that takes `runner_config`; `default` is the runner when
+    `--runner` is not given (`thread` for evaluate and reevaluate)."""
+
+    def add(command: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(command)
+        def with_runner(*args: Any, **kwargs: Any) -> Any:
+            from flows.runners import runner_config
+
+            given = {name: kwargs.pop(name, spec[3]) for name, spec in _OPTIONS.items()}
+            kind = given["runner"] or default
+            if kind == "thread" and default != "thread":
+                raise ValueError(
+                    "--runner thread is for evaluate and reevaluate: training steps need processes"
+                )
+            config = runner_config(
+                kind, given["address"], given["workers"], given["cluster_class"], given["cluster_kwargs"]
+            )
+            return command(*args, runner_config=config, **kwargs)
+
+        own = [
+            p
+            for p in inspect.signature(command, eval_str=True).parameters.values()
+            if p.name != "runner_config"
+        ]
+        with_runner.__signature__ = inspect.Signature([*own, *map(_parameter, _OPTIONS)])
+        with_runner.__annotations__ = {
+            p.name: p.annotation for p in with_runner.__signature__.parameters.values()
+        }
+        return with_runner
+
+    return add
