@@ -45,6 +45,8 @@ DryRunOption = Annotated[
 
 
 class State:
+    """Whether tracebacks are wanted (`--debug` or CAPVECTOR_DEBUG), for every command group."""
+
     debug: bool = os.environ.get("CAPVECTOR_DEBUG", "").lower() not in ("", "0", "false")
 
 
