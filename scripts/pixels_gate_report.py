@@ -193,6 +193,17 @@ are not a clean cost comparison; `benchmarks/results/step_cost.md` is.
 
 ![Success vs downstream steps, three pixels runs](study_pixels_gpu_curves.png)
 
+**To rerun on a lent GPU machine** (no package index there): download the wheels the image lacks
+for Python 3.12 manylinux into an ignored `.whl/` (pydantic 2.14.4, pydantic-core 2.50.5,
+annotated-types, typing-inspection, typing-extensions, mujoco 3.3.0, metaworld 3.1.1, gymnasium 1.4.0,
+farama-notifications, glfw, pyopengl, etils, importlib-resources: 48 MB) and the EGL loader debs
+into `.gl/`, carry both, and run `pip install --no-index --no-deps --target /tmp/site .whl/*.whl`,
+`export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl`, then `python3 scripts/pixels_gate_gpu.py --out
+$OUT/gate` (add `--no-extraction --downstream-episodes 2 --aux-weights 0.1 0.5 2.0` for run 2,
+`--downstream-episodes 2 --aux-weights 2.0 --downstream-steps 1000 --seeds 0 1 2 3
+--no-extraction` for run 3). Copy `episodes.jsonl` (gzipped) and `runs.json` into `docs/data/`
+and run this page's script.
+
 ## The runs
 
 """
