@@ -44,20 +44,20 @@ _leave_ctrl_c_to_the_cli()
 
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help=__doc__)
-for command in (flow_commands.run, flow_commands.evaluate, flow_commands.reevaluate, flow_commands.study,
-                flow_commands.calibrate, flow_commands.sweep, flow_commands.schedule):  # fmt: skip
-    app.command()(command)
 app.add_typer(artifacts_app, name="artifacts")
-for command in (inspect_commands.lineage, inspect_commands.scores, inspect_commands.compare,
-                inspect_commands.report, inspect_commands.sql):  # fmt: skip
-    app.command()(command)
-app.command("import")(inspect_commands.import_checkpoint)
 app.add_typer(vector_app, name="vector")
 app.add_typer(catalogue_app, name="catalogue")
 app.add_typer(config_app, name="config")
 app.command("verify")(verify)
 app.command("runs")(runs)
 app.command("export")(export)
+for command in (flow_commands.run, flow_commands.evaluate, flow_commands.reevaluate, flow_commands.study,
+                flow_commands.calibrate, flow_commands.sweep, flow_commands.schedule):  # fmt: skip
+    app.command()(command)
+for command in (inspect_commands.lineage, inspect_commands.scores, inspect_commands.compare,
+                inspect_commands.report, inspect_commands.sql):  # fmt: skip
+    app.command()(command)
+app.command("import")(inspect_commands.import_checkpoint)
 
 
 @app.callback()

@@ -1,4 +1,4 @@
-"""The options that say where a flow's steps run, declared once: `RUNNER_FIELDS` holds each
+"""The options that say where a flow's steps run, declared once: `flows.runner_fields` holds each
 `flows.runners.RunnerConfig` field's description (the model's field descriptions are these), and
 `runner_options` adds `--runner`, `--address`, `--workers`, `--cluster-class` and `--cluster-kwargs`
 to every command it decorates, the way mergekit adds its merge options from its config model. The
@@ -14,16 +14,9 @@ from typing import Annotated, Any
 
 import typer
 
+from flows.runner_fields import DEFAULT_WORKERS, RUNNER_FIELDS
+
 RUNNER_PANEL = "Where steps run"
-DEFAULT_WORKERS = 2
-# RunnerConfig field -> its description (the option's help)
-RUNNER_FIELDS = {
-    "kind": "process (a pool of --workers, default) | dask | ray; evaluate, reevaluate: thread (default)",
-    "address": "dask: tcp://host:port of a running scheduler; ray: its address",
-    "workers": "worker processes of a pool or a local cluster",
-    "cluster_class": "dask: a cluster class to start, e.g. dask_jobqueue.SLURMCluster",
-    "cluster_kwargs": "dask: that cluster's keyword arguments, JSON",
-}
 # option name (as the command sees it) -> (flag, RunnerConfig field, type, default)
 _OPTIONS = {
     "runner": ("--runner", "kind", str | None, None),

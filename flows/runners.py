@@ -27,7 +27,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from flows.runner_options import DEFAULT_WORKERS, RUNNER_FIELDS
+from flows.runner_fields import DEFAULT_WORKERS, RUNNER_FIELDS
 
 RunnerKind = Literal["process", "thread", "dask", "ray"]
 DASK_SCHEMES = ("tcp://", "tls://")

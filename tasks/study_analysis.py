@@ -278,7 +278,8 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
     cosines, noise = [], []
     for a, b in itertools.combinations(sorted(gammas), 2):
         ga, gb = (np.concatenate([gammas[x][n] for n in names]) for x in (a, b))
-        cosines.append(_dot(ga, gb) / math.sqrt(_dot(ga, ga) * _dot(gb, gb)))
+        norm = math.sqrt(_dot(ga, ga) * _dot(gb, gb))
+        cosines.append(_dot(ga, gb) / norm if norm else math.nan)
         if a in fts and b in fts:
             gap = np.concatenate([fts[a][n] - fts[b][n] for n in names])
             noise.append(math.sqrt(_dot(gap, gap)))
@@ -298,9 +299,9 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """a · b, correctly rounded (math.fsum): the same bits whatever BLAS threads the process has (a Dask
-    worker runs with one, the step pool with several; a BLAS dot changed the last digits, hence the
-    study's id)."""
+    """a · b with the products summed exactly (math.fsum): the same bits whatever BLAS threads the
+    process has (a Dask worker runs with one, the step pool with several; a BLAS dot changed the last
+    digits, hence the study's id)."""
     return math.fsum(np.multiply(a, b))
 
 
