@@ -109,7 +109,7 @@ AUX = AuxConfig(name="spatial_depth", weight=0.5)
 def train_config(
     steps: int, batch: int, seed: int, aux: AuxConfig | None, snapshots: list[int] = ()
 ) -> TrainConfig:
-    """The study-pixels preset's optimizer settings; the device is whatever the machine has."""
+    """The study presets' optimizer (AdamW, lr 1e-3, batch 64); the device is whatever the machine has."""
     return TrainConfig(
         steps=steps,
         batch_size=batch,

@@ -167,7 +167,10 @@ state testbed.
 pretraining tasks; D_ext has 6 tasks and D_down 7. Their difficulty was calibrated on state
 observations, not on pixels: SFT reaches 94 % at 400 steps here, so the tasks are easier in this mode
 than in the calibration's. Observations are 64×64 corner2 images plus proprioception. The policy is
-`study-pixels`' d_model 128 × 4 layers with a 4×4 token grid. Settings: θ_pt 2000 steps on 10 demos
+`study-pixels`' d_model 128 × 4 layers with a 4×4 token grid. The design is the script's, declared in
+`scripts/pixels_gate_gpu.py` before any rollout, and differs from the `study-pixels` preset: other
+splits, 2 draws rather than 3, 20 test goals per task rather than 84, 1000 extraction steps rather than
+600, budgets 100/200/400, and no lr or weight selections in run 1. Settings: θ_pt 2000 steps on 10 demos
 per task; θ_ft and θ_ao 1000 steps on 10 demos per task with draws 0 and 1 (same seed and batch order
 within a draw); downstream runs at batch 64 and lr 1e-3 over 3 seeds (run 3: 4 seeds). Test goals
 are 20 per task (seeds 100000+), validation goals 10 per task (seeds 50000+), horizon 150,
@@ -175,11 +178,12 @@ are 20 per task (seeds 100000+), validation goals 10 per task (seeds 50000+), ho
 chosen on D_down validation goals among 0.1, 0.5 and 2 before its test rows were read. Run 3 used
 run 2's choice.
 
-**What was tried, in order, and why.** Run 1 is the study's gate phase as declared. Run 1 showed SFT
+**What was tried, in order, and why.** Run 1 is the gate phase of the script's declared design. It showed SFT
 near the ceiling after 400 steps. Scarcer data (2 demos per task) is the textbook setting where a
 dense auxiliary target should help, so run 2 tried it at three weights. Run 2's chosen weight gained
-most at its last budget (+5.2 at 400 steps), so run 3 trained longer with one more seed. That gain
-did not hold (−0.5 at 1000 steps). All three runs are reported; none was dropped.
+most at its last budget (+5.2 at 400 steps), so run 3 trained longer with one more seed. That design
+choice was made after reading run 2's test results; it is a follow-up, not a confirmatory test. The
+gain did not hold (−0.5 at 1000 steps). All three runs are reported; none was dropped.
 
 **What it says.** The dense 3D targets neither speed up nor improve visuomotor learning on these
 tasks at this scale. On the state testbed the objective sees privileged positions that the
@@ -188,7 +192,7 @@ the ceiling at the final budget), more downstream steps, or a larger model for t
 representation to matter. Those are the next levers; each is a GPU job of minutes with this script.
 
 Speed on the H200 (d_model 128, batch 64, while the rollout pool shared the CPUs): SFT trained at
-62–107 steps/s and auxiliary SFT at 58–78 steps/s, in Python-bound small-model steps. These figures
+62–107 steps/s and auxiliary SFT at 58–77 steps/s, in Python-bound small-model steps. These figures
 are not a clean cost comparison; `benchmarks/results/step_cost.md` is.
 
 ![Success vs downstream steps, three pixels runs](study_pixels_gpu_curves.png)
