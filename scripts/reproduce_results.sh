@@ -6,19 +6,30 @@
 #   control-small -> docs/study_control_small.md  the default of `make run`: the positive-control testbed
 #   control       -> docs/study_control.md        the same testbed, 2 draws x 2 seeds x 140 test goals
 #   control-10000 -> docs/study_control_10000.md  the same at its declared 3 x 3, extraction 10,000 steps
+#   control-hard  -> docs/study_control_hard.md   the six hardest calibrated tasks downstream
+#   control-flow  -> docs/study_control_flow.md   `control` on the flow-matching backbone
+#   control-2demos -> docs/study_control_small_2demos.md  `control-small` with 2 downstream demos per task
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
-#   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized)
-# Usage: scripts/reproduce_results.sh [control-small|control|control-10000|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
+#                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
+# Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
+#        control-2demos|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 preset="${1:-control-small}"
 case "$preset" in
-  control-small | control | state | pixels)
+  control-small | control | control-hard | state | pixels)
     .venv/bin/capvector study --preset "study-$preset" --report "docs/study_${preset//-/_}.md" ;;
   control-10000)
     .venv/bin/capvector study --preset study-control --set 'study.draws=[0,1,2]' --set 'seeds=[0,1,2]' \
       --set extraction.steps=10000 --set extraction.checkpoint_every=2500 --report docs/study_control_10000.md ;;
-  *) echo "usage: $0 [control-small|control|control-10000|state|pixels]" >&2; exit 2 ;;
+  control-flow)
+    .venv/bin/capvector study --preset study-control --set policy.type=flow --report docs/study_control_flow.md ;;
+  control-2demos)
+    .venv/bin/capvector study --preset study-control-small --set data.episodes_downstream=2 \
+      --report docs/study_control_small_2demos.md ;;
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|state|pixels]" >&2
+     exit 2 ;;
 esac
