@@ -8,7 +8,7 @@ from prefect import flow
 
 from artifacts.scores import read_scores
 from capvector_core.evaluation import EvalConfig
-from flows.runs import publish_markdown, recorded_run, run_name, untagged_steps
+from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
 from tasks.evaluation import evaluate_task, reevaluate_task
 from tasks.workspace import Workspace, workspace_for
@@ -69,14 +69,14 @@ def reevaluate_flow(home: str, selection_sql: str = DEFAULT_SELECTION) -> list[d
     ):
         previous = {cid: _latest_scores(workspace, cid) for cid in checkpoint_ids}
         jobs = [(cid, cfg) for cid in checkpoint_ids for cfg in _previous_protocols(workspace, cid)]
-        with untagged_steps():  # as StepRunner submits steps: see flows.runs.untagged_steps
-            futures = [
-                (cid, reevaluate_task.submit(home, f"reevaluate {cid[:12]}", {"checkpoint": cid}, cfg))
-                for cid, cfg in jobs
-            ]
+        steps = StepRunner(home, len(jobs), "reevaluate")  # how every flow submits (untagged, placed)
+        futures = [
+            (cid, steps.submit(reevaluate_task, f"reevaluate {cid[:12]}", {"checkpoint": cid}, cfg))
+            for cid, cfg in jobs
+        ]
         changes = []
         for cid, future in futures:
-            eval_id = future.result()
+            eval_id = resolve(future)
             (scores,) = read_scores(workspace.api, evaluations=[eval_id])
             fingerprint = scores.fingerprint
             before = previous[cid].get(fingerprint, {})
