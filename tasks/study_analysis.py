@@ -275,15 +275,16 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
     gammas = {d: _flat(Checkpoint(p)) for d, p in sorted(vectors.items())}
     names = sorted(next(iter(gammas.values())))
     fts = {d: _flat(Checkpoint(p), names) for d, p in sorted(standard.items())}
+    flat = {d: np.concatenate([g[n] for n in names]) for d, g in gammas.items()}
+    squares = {d: _dot(g, g) for d, g in flat.items()}
     cosines, noise = [], []
     for a, b in itertools.combinations(sorted(gammas), 2):
-        ga, gb = (np.concatenate([gammas[x][n] for n in names]) for x in (a, b))
-        norm = math.sqrt(_dot(ga, ga) * _dot(gb, gb))
-        cosines.append(_dot(ga, gb) / norm if norm else math.nan)
+        norm = math.sqrt(squares[a] * squares[b])
+        cosines.append(_dot(flat[a], flat[b]) / norm if norm else math.nan)
         if a in fts and b in fts:
             gap = np.concatenate([fts[a][n] - fts[b][n] for n in names])
             noise.append(math.sqrt(_dot(gap, gap)))
-    norms = [math.sqrt(_dot(g, g)) for g in (np.concatenate([g[n] for n in names]) for g in gammas.values())]
+    norms = [math.sqrt(q) for q in squares.values()]
     values = {
         "mean_cosine": float(np.mean(cosines)),
         "gamma_norm": float(np.mean(norms)),
