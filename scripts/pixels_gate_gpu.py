@@ -58,6 +58,28 @@ DOWNSTREAM = [
     "window-close-v3",
     "plate-slide-back-v3",
 ]
+# `study-control-hard`'s splits (its preset states the rule): the six calibrated tasks with the lowest
+# SFT mean downstream, the other nine to extraction.
+HARD_EXTRACTION = [
+    "faucet-close-v3",
+    "handle-press-side-v3",
+    "coffee-button-v3",
+    "button-press-v3",
+    "button-press-wall-v3",
+    "faucet-open-v3",
+    "handle-press-v3",
+    "drawer-close-v3",
+    "plate-slide-side-v3",
+]
+HARD_DOWNSTREAM = [
+    "dial-turn-v3",
+    "door-unlock-v3",
+    "door-lock-v3",
+    "door-close-v3",
+    "plate-slide-back-v3",
+    "window-close-v3",
+]
+TASK_SETS = {"calibrated": (EXTRACTION, DOWNSTREAM), "hard": (HARD_EXTRACTION, HARD_DOWNSTREAM)}
 
 SCALES = {
     "gpu": dict(
@@ -193,12 +215,25 @@ def main() -> None:
     ap.add_argument("--downstream-steps", type=int, help="final budget; the others at 1/4 and 1/2 of it")
     ap.add_argument("--seeds", type=int, nargs="+", help="downstream training seeds (default: the scale's)")
     ap.add_argument("--no-extraction", action="store_true", help="only SFT and the auxiliary arm(s)")
+    ap.add_argument(
+        "--objective",
+        choices=["spatial_depth", "spatial"],
+        default=AUX.name,
+        help="per-patch depth (Spatial Forcing's analogue) or the 9-d hand/object/goal xyz",
+    )
+    ap.add_argument(
+        "--tasks", choices=sorted(TASK_SETS), default="calibrated", help="extraction and downstream task sets"
+    )
     args = ap.parse_args()
     s = dict(SCALES[args.scale])
     if args.downstream_steps:
         steps = args.downstream_steps
         s.update(downstream_steps=steps, budgets=[steps // 4, steps // 2, steps])
     s["seeds"] = args.seeds or s["seeds"]
+    if args.scale != "tiny":
+        s["extraction"], s["downstream"] = TASK_SETS[args.tasks]
+    aux_base = AUX.model_copy(update={"name": args.objective})
+    depth = args.objective == "spatial_depth"  # per-patch xyz is only rendered when its objective reads it
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "episodes.jsonl").unlink(missing_ok=True)
     runs: dict[str, dict] = {}
@@ -247,21 +282,21 @@ def main() -> None:
         valid = dict(valid, horizon=horizon, split="validation")
         pt = fit("pt", None, pre, train_config(s["pretrain_steps"], s["batch"], 0, None))[s["pretrain_steps"]]
         del pre
-        ext = None if args.no_extraction else demos("extraction", s["extraction"], ext_n, depth=True)
-        down = demos("downstream", s["downstream"], down_n, depth=True)
+        ext = None if args.no_extraction else demos("extraction", s["extraction"], ext_n, depth=depth)
+        down = demos("downstream", s["downstream"], down_n, depth=depth)
         episodes.submit(pt, **test, arm="pt", draw=-1, seed=0, budget=0)
         starts: dict[tuple[str, int], Path] = {}
         for draw in (
             [] if ext is None else s["draws"]
         ):  # θ_ft^d and θ_ao^d: same θ_pt, same seed and batch order
-            for arm, aux in (("ft", None), ("ao", AUX)):
+            for arm, aux in (("ft", None), ("ao", aux_base)):
                 path = fit(
                     f"{arm}{draw}", pt, ext, train_config(s["extraction_steps"], s["batch"], draw, aux)
                 )
                 starts[arm, draw] = path[s["extraction_steps"]]
                 episodes.submit(starts[arm, draw], **valid, arm=arm, draw=draw, seed=0, budget=0)
         aux_arms = [
-            ("aux" if len(args.aux_weights) == 1 else f"aux@{w:g}", AUX.model_copy(update={"weight": w}))
+            ("aux" if len(args.aux_weights) == 1 else f"aux@{w:g}", aux_base.model_copy(update={"weight": w}))
             for w in args.aux_weights
         ]
         jobs = [("sft", -1, pt, None)] + [(arm, -1, pt, aux) for arm, aux in aux_arms]
@@ -284,7 +319,8 @@ def main() -> None:
                 "scale": args.scale,
                 "settings": s,
                 "policy": POLICY,
-                "aux": AUX.model_dump(),
+                "aux": aux_base.model_dump(),
+                "tasks": args.tasks,
                 "aux_weights": args.aux_weights,
                 "downstream_episodes": down_n,
                 "runs": runs,
