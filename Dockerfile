@@ -9,6 +9,7 @@ RUN apt-get update \
 WORKDIR /app
 COPY pyproject.toml README.md Makefile ./
 COPY capvector_core ./capvector_core
+COPY capvector_stats ./capvector_stats
 COPY artifacts ./artifacts
 COPY tasks ./tasks
 COPY flows ./flows

@@ -32,19 +32,19 @@ from flows.pipeline import step_runner, submit_arm
 from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
+from flows.study_markdown import load_study_report, study_markdown
 from tasks.data import collect_demos_task
 from tasks.evaluation import evaluate_task
 from tasks.held_out_loss import held_out_loss_task
 from tasks.progress import emit
 from tasks.selection import chosen, select_task
 from tasks.study_analysis import analyse_study_task, gate_passed, label
-from tasks.study_report import load_study_report, study_markdown
 from tasks.training import snapshots_of, train_task
 from tasks.vectors import extract_task, merge_task, null_vector_task
 from tasks.workspace import Workspace, workspace_for
 
 SHARED = -1
-"""The draw of an arm shared by every γ draw (tasks.study_statistics.SHARED_DRAW)."""
+"""The draw of an arm shared by every γ draw (capvector_stats.paired_differences.SHARED_DRAW)."""
 
 
 def _dump(model: Any) -> dict[str, Any]:

@@ -14,10 +14,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from capvector_stats.paired_differences import ENDPOINT  # noqa: E402
+from flows.study_markdown import NAMES, load_study_report, study_markdown  # noqa: E402
 from tasks.evaluation import videos_of  # noqa: E402
 from tasks.study_analysis import StudyReport  # noqa: E402
-from tasks.study_report import NAMES, load_study_report, study_markdown  # noqa: E402
-from tasks.study_statistics import ENDPOINT  # noqa: E402
 from tasks.workspace import Workspace  # noqa: E402
 
 COLOURS = {

@@ -19,7 +19,7 @@ import importlib.util
 from pathlib import Path
 
 # The packages whose code decides an artifact's content (the store and catalogue only keep it).
-PROJECT_PACKAGES = ("capvector_core", "tasks")
+PROJECT_PACKAGES = ("capvector_core", "capvector_stats", "tasks")
 
 
 def _source_path(module: str) -> Path | None:

@@ -5,10 +5,10 @@ compared runs, budget 0 being the checkpoint a run starts from; draw -1 for arms
 draw), `extval/<ft|ao|meta|pt>/<draw>` (D_ext validation evaluations),
 `loss/<standard|auxiliary>/<draw>/<budget>` (held-out action losses), `vector/<draw>` and `ft/<draw>`
 (γ^d and θ_ft^d, for precondition e) and `selection/<name>`. The primary endpoint is each goal's
-success averaged over the declared budgets (`study_statistics.ENDPOINT`). A `gate` stage analyses the
-arms that test preconditions (b) and (c) before CapVector's arms run (`gate_passed`). Scores come
-from the evaluations' episodes (artifacts.scores.read_episodes); the statistics are
-tasks.study_statistics'. The document holds no timings (its id depends on results
+success averaged over the declared budgets (`capvector_stats.paired_differences.ENDPOINT`). A `gate`
+stage analyses the arms that test preconditions (b) and (c) before CapVector's arms run
+(`gate_passed`). Scores come from the evaluations' episodes (artifacts.scores.read_episodes); the
+statistics are capvector_stats.paired_differences'. The document holds no timings (its id depends on results
 only); the rendered report reads speeds from the checkpoints' records.
 """
 
@@ -24,10 +24,7 @@ from pydantic import BaseModel, ConfigDict
 
 from artifacts.scores import read_episodes, read_scores
 from capvector_core.safetensors_io import Checkpoint
-from tasks.caching import cached_step
-from tasks.held_out_loss import measured_loss
-from tasks.prefect_task import pipeline_task
-from tasks.study_statistics import (
+from capvector_stats.paired_differences import (
     ENDPOINT,
     SHARED_DRAW,
     Comparison,
@@ -40,6 +37,9 @@ from tasks.study_statistics import (
     success_curve,
     t_quantile,
 )
+from tasks.caching import cached_step
+from tasks.held_out_loss import measured_loss
+from tasks.prefect_task import pipeline_task
 from tasks.workspace import Workspace, provenance, workspace_for
 
 STUDY_KIND = "study"
@@ -143,7 +143,7 @@ def _parse(inputs: dict[str, str], kind: str) -> list[tuple[list[str], str]]:
 
 
 def _episodes(workspace: Workspace, labelled: list[tuple[dict[str, Any], str]]) -> pd.DataFrame:
-    """One row per episode with the study_statistics columns; `goal` is the episode's env seed."""
+    """One row per episode with the paired_differences columns; `goal` is the episode's env seed."""
     frame = read_episodes(workspace.api, [e for _, e in labelled]).rename(columns={"seed": "goal"})
     keys = pd.DataFrame([{**k, "evaluation_id": e} for k, e in labelled])
     # many to many: a run's start (budget 0) is one evaluation counted for every seed

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from capvector_stats.paired_differences import ENDPOINT
 from tasks.held_out_loss import MEASUREMENT_KIND
 from tasks.study_analysis import StudyDesign, analyse, gate_passed, label, run_analyse_study
-from tasks.study_statistics import ENDPOINT
 from tasks.workspace import Workspace
 
 TASKS = ("reach-v3", "push-v3")

@@ -14,9 +14,9 @@ import pytest
 from safetensors.numpy import load_file
 
 from capvector_core.demos import EVAL_SEED_BASE, UNIT_SEEDS, VALIDATION_SEED_BASE
+from capvector_stats.paired_differences import ENDPOINT
 from flows.study_config import load_study
 from tasks.study_analysis import StudyReport
-from tasks.study_statistics import ENDPOINT
 from tasks.workspace import Workspace
 from tests.conftest import run_cli
 

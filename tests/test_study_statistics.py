@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.study_statistics import (
+from capvector_stats.paired_differences import (
     ENDPOINT,
     SHARED_DRAW,
     VarianceComponents,

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import statistics
 
+from capvector_stats.paired_differences import ENDPOINT, Comparison, CurvePoint
 from tasks.study_analysis import StudyReport
-from tasks.study_statistics import ENDPOINT, Comparison, CurvePoint
 from tasks.workspace import Workspace
 
 HEADLINE = (
