@@ -13,7 +13,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -35,6 +35,7 @@ from capvector_core.envs import (
     batch_observations,
     expert_policy,
 )
+from capvector_core.eval_fields import EVAL_FIELDS
 from capvector_core.execution import ExecutionOnly
 from capvector_core.metaworld_tasks import validate_task_names
 
@@ -43,22 +44,30 @@ Progress = Callable[[int, int], None]
 BENCHMARK = "metaworld-v3"
 
 
+def _field(name: str, **constraints: Any) -> Any:
+    """A field whose default and description are `EVAL_FIELDS`' (also `capvector evaluate`'s options)."""
+    spec = EVAL_FIELDS[name]
+    return Field(spec.default, description=spec.help, **constraints)
+
+
 class EvalConfig(BaseModel):
     """The evaluation protocol (everything but `batch_size` and `record_video` enters the fingerprint)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    tasks: list[str]
-    episodes_per_task: int = Field(20, ge=1)
-    seed_base: int = Field(EVAL_SEED_BASE, ge=0)
-    horizon: int = Field(MAX_HORIZON, ge=1, le=MAX_HORIZON)
-    obs_mode: ObsMode = "state"
-    camera: str = "corner2"
-    image_size: int = Field(64, ge=16, le=256)
-    execute_steps: int = Field(1, ge=1)
-    # envs stepped together (memory: one MjData each, one model per task)
-    batch_size: Annotated[int, ExecutionOnly("records equal a one-env-at-a-time loop's")] = Field(64, ge=1)
-    record_video: int = Field(0, ge=0, description="episodes per task recorded as GIFs (the first goals)")
+    tasks: list[str] = Field(description="Meta-World task names")
+    episodes_per_task: int = _field("episodes_per_task", ge=1)
+    seed_base: int = Field(EVAL_SEED_BASE, ge=0, description="first goal's env seed (test goals by default)")
+    horizon: int = _field("horizon", ge=1, le=MAX_HORIZON)
+    obs_mode: ObsMode = _field("obs_mode")
+    camera: str = _field("camera")
+    image_size: int = _field("image_size", ge=16, le=256)
+    execute_steps: int = _field("execute_steps", ge=1)
+    # memory: one MjData per env, one model per task
+    batch_size: Annotated[int, ExecutionOnly("records equal a one-env-at-a-time loop's")] = _field(
+        "batch_size", ge=1
+    )
+    record_video: int = _field("record_video", ge=0)
 
     @field_validator("tasks")
     @classmethod

@@ -23,6 +23,7 @@ from flows.cli_common import (
     print_json,
     workspace,
 )
+from flows.eval_options import eval_options
 from flows.home import resolve_home
 from flows.runner_options import runner_options
 
@@ -171,18 +172,13 @@ def run(
 
 
 @runner_options("thread")
+@eval_options
 def evaluate(
     checkpoints: Annotated[list[str], typer.Argument(help="checkpoint artifact ids (or unique prefixes)")],
     tasks: Annotated[str, typer.Option(help="comma-separated Meta-World task names")],
-    episodes: Annotated[int, typer.Option(help="episodes (goal variations) per task")] = 20,
-    horizon: int = 500,
-    execute_steps: Annotated[int, typer.Option(help="actions executed per predicted chunk")] = 1,
-    obs_mode: str = "state",
-    camera: Annotated[str, typer.Option(help="pixels: camera (another tests generalization)")] = "corner2",
-    image_size: Annotated[int, typer.Option(help="image side for pixels policies")] = 64,
-    video: Annotated[int, typer.Option(help="episodes per task recorded as GIF video artifacts")] = 0,
     home: HomeOption = None,
     as_json: JsonOption = False,
+    eval_settings: Any = None,  # EvalConfig's fields, from flows.eval_options
     runner_config: Any = None,  # flows.runners.RunnerConfig, from the runner options
 ) -> None:
     """Evaluate checkpoints on any tasks under one protocol (test seeds, disjoint from demo seeds)."""
@@ -191,16 +187,7 @@ def evaluate(
     from flows.evaluation_flows import evaluate_flow
 
     preflight("evaluate", home)
-    config = EvalConfig(
-        tasks=[t.strip() for t in tasks.split(",") if t.strip()],
-        episodes_per_task=episodes,
-        horizon=horizon,
-        execute_steps=execute_steps,
-        obs_mode=obs_mode,
-        camera=camera,
-        image_size=image_size,
-        record_video=video,
-    )
+    config = EvalConfig(tasks=[t.strip() for t in tasks.split(",") if t.strip()], **eval_settings)
     flow_fn = _on_runner(evaluate_flow, runner_config)
     from flows.runs import run_tags
 

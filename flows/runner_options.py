@@ -10,10 +10,9 @@ from __future__ import annotations
 import functools
 import inspect
 from collections.abc import Callable
-from typing import Annotated, Any
+from typing import Any
 
-import typer
-
+from flows.generated_options import option_parameter, splice_signature
 from flows.runner_fields import DEFAULT_WORKERS, RUNNER_FIELDS
 
 RUNNER_PANEL = "Where steps run"
@@ -29,10 +28,7 @@ _OPTIONS = {
 
 def _parameter(name: str) -> inspect.Parameter:
     flag, field, kind, default = _OPTIONS[name]
-    option = typer.Option(flag, help=RUNNER_FIELDS[field], rich_help_panel=RUNNER_PANEL)
-    return inspect.Parameter(
-        name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=Annotated[kind, option]
-    )
+    return option_parameter(name, flag, kind, default, RUNNER_FIELDS[field], RUNNER_PANEL)
 
 
 def runner_options(default: str = "process") -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -55,15 +51,7 @@ def runner_options(default: str = "process") -> Callable[[Callable[..., Any]], C
             )
             return command(*args, runner_config=config, **kwargs)
 
-        own = [
-            p
-            for p in inspect.signature(command, eval_str=True).parameters.values()
-            if p.name != "runner_config"
-        ]
-        with_runner.__signature__ = inspect.Signature([*own, *map(_parameter, _OPTIONS)])
-        with_runner.__annotations__ = {
-            p.name: p.annotation for p in with_runner.__signature__.parameters.values()
-        }
+        splice_signature(with_runner, command, "runner_config", [*map(_parameter, _OPTIONS)])
         return with_runner
 
     return add
