@@ -8,6 +8,7 @@ runs on the runner its options name (flows.runners). Heavy imports happen inside
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -81,9 +82,12 @@ def _start_log(command: str, home: str | None) -> None:
     emit(f"capvector {command}: home {resolve_home(home)}, log {os.environ[LOG_FILE_ENV]}")
 
 
-def _from_cache(command: str, home: str, plan, total: int, label: str, dry_run: bool = False):
+def _from_cache(
+    command: str, home: str, plan, total: int, label: str, dry_run: bool = False, planned: Sequence[str] = ()
+):
     """Know before starting: the plan's result when the content cache answers every step (no Prefect
-    run, server wait or worker), else None. `dry_run` prints the plan's cache status and exits."""
+    run, server wait or worker), else None. `dry_run` prints the plan's cache status and exits: each
+    step cached, the first one to run, and (given the recorded plan, `planned`) every step after it."""
     from flows.steps import CacheProbe, NotAllCached
 
     if _new_home(home, dry_run):
@@ -99,8 +103,15 @@ def _from_cache(command: str, home: str, plan, total: int, label: str, dry_run: 
         if missing is None:
             typer.echo(f"all {total} steps cached: `capvector {command}` prints its result at once")
         else:
+            answered = {step for step, _ in probe.answered}
+            after = [step for step in planned if step not in answered and step != missing]
+            typer.echo(f"to run  {missing}")
+            for step in after:
+                typer.echo(f"then    {step}")
             todo = total - len(probe.answered)
-            typer.echo(f"to run  {missing}, then what depends on it ({todo} of {total} steps to run)")
+            typer.echo(
+                f"{todo} of {total} steps to run or to look up once their inputs exist (the first: {missing})"
+            )
         raise typer.Exit(0)
     if missing is None:
         _start_log(command, home)
@@ -118,10 +129,11 @@ def _answer_or_run(
     flow_fn,
     config,
     runner_config,
+    planned: Sequence[str] = (),
 ) -> Any:
     """A planned command's result: from the content cache when it answers every step (no server, no
     flow run), else from a flow run (server up, log opened, tagged with the command and preset)."""
-    result = _from_cache(command, resolve_home(home), plan, total, label, dry_run)
+    result = _from_cache(command, resolve_home(home), plan, total, label, dry_run, planned)
     if result is None:
         from flows.runs import run_tags
 
@@ -150,15 +162,16 @@ def run(
     if _new_home(home, dry_run):
         _boot_server()
     from flows.config import load_config
-    from flows.pipeline import pipeline, pipeline_steps, run_pipeline
+    from flows.pipeline import pipeline, pipeline_plan, run_pipeline
 
     config = load_config(preset, overrides)
     home = resolve_home(home)
     command = f"run --preset {preset}"
     plan = lambda steps: run_pipeline(steps, config)  # noqa: E731
     label = f"pipeline {config.name}"
+    planned = [p.step for p in pipeline_plan(config)]
     ids = _answer_or_run(
-        command, home, plan, pipeline_steps(config), label, dry_run, pipeline, config, runner_config
+        command, home, plan, len(planned), label, dry_run, pipeline, config, runner_config, planned
     )
     if as_json:
         print_json(ids)
@@ -251,15 +264,17 @@ def study(
         _boot_server()
     from functools import partial
 
-    from flows.study import plan_study, study_flow, study_steps
+    from flows.study import plan_study, study_flow, study_plan
     from flows.study_config import load_study
     from flows.study_figures import default_report_path, write_study_report
 
     config = load_study(preset, overrides)
     command, label = f"study --preset {preset}", f"study {config.name}"
     plan = partial(plan_study, config)
-    total = study_steps(config)
-    result = _answer_or_run(command, home, plan, total, label, dry_run, study_flow, config, runner_config)
+    planned = [p.step for p in study_plan(config)]
+    result = _answer_or_run(
+        command, home, plan, len(planned), label, dry_run, study_flow, config, runner_config, planned
+    )
     ws = workspace(home)
     written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
     if as_json:

@@ -20,7 +20,7 @@ from prefect.task_runners import ProcessPoolTaskRunner
 
 from flows.config import ARMS, PipelineConfig
 from flows.runs import publish_markdown, recorded_run, run_name
-from flows.steps import StepRunner, resolve
+from flows.steps import PlannedStep, StepRunner, record_plan, resolve
 from tasks.data import collect_demos_task
 from tasks.evaluation import evaluate_task
 from tasks.prefect_task import bind_worker_to_parent
@@ -32,11 +32,6 @@ from tasks.workspace import workspace_for
 
 def _dump(model: Any) -> dict[str, Any]:
     return model.model_dump(mode="json")
-
-
-def vector_stage_steps() -> int:
-    """Steps `submit_vector_stage` submits: 3 demo sets, θ_pt, θ_ft, θ_ao, γ, θ_meta."""
-    return 8
 
 
 def submit_vector_stage(steps: StepRunner, config: PipelineConfig) -> dict[str, Any]:
@@ -122,12 +117,14 @@ def _submit_ood_report(steps: StepRunner, config: PipelineConfig, checkpoints: d
     return resolve(steps.submit(report_task, f"report {name}", evaluations, {"name": name}))
 
 
+def pipeline_plan(config: PipelineConfig) -> list[PlannedStep]:
+    """Every step a pipeline run submits, in order: the flow's own submissions, recorded."""
+    return record_plan(lambda steps: run_pipeline(steps, config))
+
+
 def pipeline_steps(config: PipelineConfig) -> int:
-    """How many steps a pipeline run has: the vector stage, arms × seeds trained and evaluated, the
-    report, and with an OOD camera one more evaluation per checkpoint and a second report."""
-    checkpoints = len(config.arms) * len(config.seeds)
-    ood = checkpoints + 1 if config.evaluation.ood_camera else 0
-    return vector_stage_steps() + 2 * checkpoints + 1 + ood
+    """How many steps a pipeline run has (progress shows `k/N`): `len(plan)`."""
+    return len(pipeline_plan(config))
 
 
 @flow(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+from collections.abc import Callable
 from concurrent.futures import CancelledError
 from dataclasses import dataclass
 from typing import Any
@@ -99,6 +100,39 @@ class CacheProbe(StepRunner):
         emit(f"[{self.label}] {self.total} steps, every one cached: answered without a flow run")
         for step, _ in self.answered:
             self._report(step, "cached")
+
+
+@dataclass(frozen=True)
+class PlannedStep:
+    """A step of a plan that was recorded, not run: where an artifact id would be."""
+
+    step: str
+    task: str
+    inputs: tuple[str, ...]
+    config: dict[str, Any]
+
+
+class PlanRecorder:
+    """Records the steps a flow submits, in order, without running or looking up any: the plan."""
+
+    home = None
+
+    def __init__(self) -> None:
+        self.plan: list[PlannedStep] = []
+
+    def submit(
+        self, step_task: Any, step: str, inputs: dict[str, Any], config: dict[str, Any]
+    ) -> PlannedStep:
+        planned = PlannedStep(step, step_task.name, tuple(inputs), config)
+        self.plan.append(planned)
+        return planned
+
+
+def record_plan(submit_all: Callable[[PlanRecorder], Any]) -> list[PlannedStep]:
+    """The plan of a flow body that only submits steps and resolves their results."""
+    recorder = PlanRecorder()
+    submit_all(recorder)
+    return recorder.plan
 
 
 OUTCOME_WAIT_S = 30.0

@@ -30,7 +30,7 @@ from prefect import flow
 from flows.config import ARMS
 from flows.pipeline import step_runner, submit_arm
 from flows.runs import publish_markdown, recorded_run, run_name
-from flows.steps import StepRunner, resolve
+from flows.steps import PlannedStep, PlanRecorder, StepRunner, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from flows.study_markdown import load_study_report, study_markdown
 from tasks.data import collect_demos_task
@@ -51,43 +51,18 @@ def _dump(model: Any) -> dict[str, Any]:
     return model.model_dump(mode="json")
 
 
+def study_plan(cfg: StudyConfig) -> list[PlannedStep]:
+    """Every step the study submits when its gate passes, in order, from the flow's own code run
+    against a recorder: nothing runs or is looked up, and each choice takes its first candidate
+    (a choice changes a step's config, never how many steps follow)."""
+    recorder = PlanRecorder()
+    _run_study(_PlannedStudy(cfg, recorder))
+    return recorder.plan
+
+
 def study_steps(cfg: StudyConfig) -> int:
-    """How many steps a study submits when its gate passes (progress shows `k/N`)."""
-    s = cfg.study
-    n_budgets, n_seeds, n_draws = len(cfg.curve_budgets), len(cfg.seeds), len(s.draws)
-    cells = len(s.alphas) * len(s.lambda_scales)
-    runs = sum(n_seeds * (1 if arm in SHARED_ARMS else n_draws) for arm in s.arms)
-    lr_grid = 3 * len(s.extraction_lrs) + 1  # runs, validations, held-out losses, selection
-    ao_grid = 3 * len(s.extraction_aux_weights) + 1  # the same for θ_ao's auxiliary weight
-    aux_grid = (1 + n_budgets) * cells + 1 if "aux" in s.arms else 0  # runs, validations, selection
-    capvector = any(arm in s.arms for arm in ("capvector", "null_capvector", "meta_sft"))
-    lambda_grid = 1 + len(s.alphas) + (1 + n_budgets) * cells + 1 if capvector else 0  # γ, merges, ...
-    per_draw = 4 + 2 + 6  # θ_ft, θ_ao, γ, γ_null; their D_ext validations; held-out losses at 3 points
-    per_draw_merged = 3 if capvector else 0  # θ_meta, θ_null, θ_meta's D_ext validation
-    secondary = 1 + runs  # held-out D_down demos, every compared run's held-out action loss
-    starts = (
-        1
-        + sum(  # budget-0 tests: θ_pt once, each draw's distinct starting checkpoints
-            1 for start in {_start_kind(arm) for arm in s.arms if arm not in SHARED_ARMS}
-        )
-        * n_draws
-    )
-    compared = runs * (1 + n_budgets)  # the runs and their test evaluations
-    demos_and_pretraining, pt_validation = 5, 1  # 4 demo sets (the 5th, held-out D_down: secondary)
-    analyses = 2 if s.gate else 1
-    return (
-        demos_and_pretraining
-        + lr_grid
-        + ao_grid
-        + aux_grid
-        + lambda_grid
-        + (per_draw + per_draw_merged) * n_draws
-        + pt_validation
-        + starts
-        + compared
-        + secondary
-        + analyses
-    )
+    """How many steps a study submits when its gate passes (progress shows `k/N`): `len(plan)`."""
+    return len(study_plan(cfg))
 
 
 def _start_kind(arm: str) -> str:
@@ -110,9 +85,20 @@ class _Study:
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
 
-    def at_budget(self, checkpoint: Any, budget: int) -> str:
-        """The id of the checkpoint a run kept after `budget` steps (waits for the run)."""
-        return snapshots_of(self.workspace, resolve(checkpoint))[budget]
+    def snapshots(self, run: Any) -> dict[int, str]:
+        """Budget -> the checkpoint a run kept after that many steps (waits for the run)."""
+        return snapshots_of(self.workspace, resolve(run))
+
+    def chosen(self, selection: str) -> dict[str, Any]:
+        """The values a selection chose."""
+        return chosen(self.workspace, selection)
+
+    def gate_passed(self, report: str) -> bool:
+        return gate_passed(self.workspace, report)
+
+    def at_budget(self, checkpoint: Any, budget: int) -> Any:
+        """The checkpoint a run kept after `budget` steps (waits for the run)."""
+        return self.snapshots(checkpoint)[budget]
 
     def train_draw_arm(
         self, stage: dict[str, Any], arm: str, d: int, seed: int, step: Any, selection: Any = None
@@ -173,7 +159,7 @@ class _Study:
         action loss on D_down (the continuous secondary endpoint)."""
         for (arm, d, seed), run in runs.items():
             what = f"{arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed}"
-            for b, checkpoint in snapshots_of(self.workspace, resolve(run)).items():
+            for b, checkpoint in self.snapshots(run).items():
                 self.analysis_inputs[label("test", arm, d, seed, b)] = self.submit(
                     evaluate_task, f"test {what} @ {b}", {"checkpoint": checkpoint}, self.test
                 )
@@ -186,6 +172,23 @@ class _Study:
         inputs = {k: resolve(v) for k, v in self.analysis_inputs.items()}
         name = f"analyse study {self.cfg.name}" + (" (gate)" if stage == "gate" else "")
         return resolve(self.submit(analyse_study_task, name, inputs, {**design, "stage": stage}))
+
+
+class _PlannedStudy(_Study):
+    """The study as a plan: its reads are answered from the recorded steps' configs, not the store."""
+
+    def __init__(self, cfg: StudyConfig, recorder: PlanRecorder):
+        super().__init__(cfg, recorder, None)
+
+    def snapshots(self, run: PlannedStep) -> dict[int, PlannedStep]:
+        train = run.config["train"]
+        return {b: run for b in sorted({*train["snapshot_steps"], train["steps"]})}
+
+    def chosen(self, selection: PlannedStep) -> dict[str, Any]:
+        return selection.config["candidates"][0]["values"]
+
+    def gate_passed(self, report: PlannedStep) -> bool:
+        return True
 
 
 def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[str, Any]:
@@ -219,7 +222,7 @@ def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[st
     lr_selection = study.select(
         "extraction lr", [({"lr": v}, e) for v, e in cells], {"run": "θ_ft", "seed": tune}, losses
     )
-    lr = chosen(study.workspace, lr_selection)["lr"]
+    lr = study.chosen(lr_selection)["lr"]
     ao_configs = {w: cfg.extraction_run(True, tune, lr, w) for w in s.extraction_aux_weights}
     ao_runs, cells, losses = grid("θ_ao aux weight", ao_configs, {"selection": lr_selection})
     weight_selection = study.select(
@@ -228,7 +231,7 @@ def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[st
         {"run": "θ_ao", "seed": tune},
         losses,
     )
-    weight = chosen(study.workspace, weight_selection)["aux_weight"]
+    weight = study.chosen(weight_selection)["aux_weight"]
     return {
         "lr": lr,
         "aux_weight": weight,
@@ -273,7 +276,7 @@ def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: A
     """Each extraction run's held-out action loss at half, three quarters and the end (precondition a)."""
     for d, stage in draws.items():
         for which in ("standard", "auxiliary"):
-            kept = snapshots_of(study.workspace, resolve(stage[which]))
+            kept = study.snapshots(stage[which])
             for b in kept:
                 study.analysis_inputs[label("loss", which, d, b)] = study.submit(
                     held_out_loss_task,
@@ -336,7 +339,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
     if aux_grid:
         cells = [({"aux_weight": w}, study.validate_curve(run, f"aux weight={w}")) for w, run in aux_grid]
         aux_selection = study.select("auxiliary weight", cells, {"seed": tune, "endpoint": cfg.curve_budgets})
-        chosen_values["aux_weight"] = chosen(study.workspace, aux_selection)["aux_weight"]
+        chosen_values["aux_weight"] = study.chosen(aux_selection)["aux_weight"]
         for seed in cfg.seeds:
             step = cfg.study_downstream("aux", seed, aux_weight=chosen_values["aux_weight"])
             runs["aux", SHARED, seed] = submit_arm(
@@ -358,7 +361,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
     design = _design(cfg, chosen_values)
     if s.gate:
         gate_report = study.analyse("gate", design)
-        if not gate_passed(study.workspace, gate_report):
+        if not study.gate_passed(gate_report):
             emit(f"[study {cfg.name}] gate: preconditions (b), (c) not shown; CapVector's arms are not run")
             return {"report": gate_report, "selections": _selections(study)}
 
@@ -396,7 +399,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
             grid_cells.append(({"alpha": alpha, "lambda_scale": scale}, run, what))
     cells = [(values, study.validate_curve(run, what)) for values, run, what in grid_cells]
     grid_selection = study.select("α and λ", cells, {"seed": tune, "endpoint": cfg.curve_budgets})
-    best = chosen(study.workspace, grid_selection)
+    best = study.chosen(grid_selection)
     chosen_values |= {"alpha": best["alpha"], "lambda_scale": best["lambda_scale"]}
     merge = cfg.merge_config(best["alpha"])
     for d, stage in draws.items():

@@ -11,9 +11,9 @@ from typing import Any
 from prefect import flow
 
 from flows.config import ARMS, PipelineConfig
-from flows.pipeline import step_runner, submit_arm, submit_vector_stage, vector_stage_steps
+from flows.pipeline import step_runner, submit_arm, submit_vector_stage
 from flows.runs import publish_markdown, recorded_run, run_name
-from flows.steps import StepRunner, resolve
+from flows.steps import StepRunner, record_plan, resolve
 from tasks.evaluation import evaluate_task
 from tasks.selection import select_task
 from tasks.vectors import merge_task
@@ -24,46 +24,48 @@ from tasks.workspace import workspace_for
 def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
     cfg = PipelineConfig.model_validate(config)
     workspace = workspace_for(home)
-    arm, seed = cfg.sweep.arm, cfg.seeds[0]
-    lambdas = cfg.sweep.lambdas if ARMS[arm].orthogonal else [None]
-    cells_total = len(cfg.sweep.alphas) * len(lambdas)
-    total = vector_stage_steps() + len(cfg.sweep.alphas) + 2 * cells_total + 1
+    total = len(record_plan(lambda steps: submit_sweep(steps, cfg)))
     steps = StepRunner(home, total, f"sweep {cfg.name}")
     with recorded_run(workspace, "sweep", {"config": config, "home": home}):
-        stage = submit_vector_stage(steps, cfg)
-        validation = cfg.eval_config(validation=True).model_dump(mode="json")
-        cells = []
-        for alpha in cfg.sweep.alphas:
-            meta = steps.submit(
-                merge_task,
-                f"merge θ_meta (α={alpha})",
-                {"base": stage["pretrained"], "vector": stage["vector"]},
-                cfg.merge_config(alpha).model_dump(mode="json"),
-            )
-            for lam in lambdas:
-                label = f"{arm} α={alpha} λ={lam}"
-                checkpoint = submit_arm(
-                    steps, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label
-                )
-                evaluation = steps.submit(
-                    evaluate_task, f"validate {label}", {"checkpoint": checkpoint}, validation
-                )
-                cells.append(
-                    {"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation}
-                )
-        selection = {
-            "name": "α and λ",
-            "context": {"arm": arm, "seed": seed},
-            "candidates": [
-                {"values": {"alpha": c["alpha"], "lambda": c["lambda"]}, "evaluations": [f"cell {i}"]}
-                for i, c in enumerate(cells)
-            ],
-        }
-        evaluations = {f"cell {i}": c["evaluation"] for i, c in enumerate(cells)}
-        sweep_id = resolve(steps.submit(select_task, f"sweep {cfg.name}", evaluations, selection))
+        sweep_id = submit_sweep(steps, cfg)
         doc = workspace.api.store.open_json(sweep_id)
         publish_markdown(f"{cfg.name}-sweep", sweep_markdown(doc), "α × λ sweep on validation seeds")
     return {"sweep": sweep_id, **doc}
+
+
+def submit_sweep(steps: StepRunner, cfg: PipelineConfig) -> Any:
+    """The vector stage, then per α a merge and per λ a run and its validation; the selection's id."""
+    arm, seed = cfg.sweep.arm, cfg.seeds[0]
+    lambdas = cfg.sweep.lambdas if ARMS[arm].orthogonal else [None]
+    stage = submit_vector_stage(steps, cfg)
+    validation = cfg.eval_config(validation=True).model_dump(mode="json")
+    cells = []
+    for alpha in cfg.sweep.alphas:
+        meta = steps.submit(
+            merge_task,
+            f"merge θ_meta (α={alpha})",
+            {"base": stage["pretrained"], "vector": stage["vector"]},
+            cfg.merge_config(alpha).model_dump(mode="json"),
+        )
+        for lam in lambdas:
+            label = f"{arm} α={alpha} λ={lam}"
+            checkpoint = submit_arm(
+                steps, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label
+            )
+            evaluation = steps.submit(
+                evaluate_task, f"validate {label}", {"checkpoint": checkpoint}, validation
+            )
+            cells.append({"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation})
+    selection = {
+        "name": "α and λ",
+        "context": {"arm": arm, "seed": seed},
+        "candidates": [
+            {"values": {"alpha": c["alpha"], "lambda": c["lambda"]}, "evaluations": [f"cell {i}"]}
+            for i, c in enumerate(cells)
+        ],
+    }
+    evaluations = {f"cell {i}": c["evaluation"] for i, c in enumerate(cells)}
+    return resolve(steps.submit(select_task, f"sweep {cfg.name}", evaluations, selection))
 
 
 def sweep_markdown(doc: dict[str, Any]) -> str:

@@ -1,0 +1,44 @@
+"""A flow's step total is `len(plan)`: the flow's own code run against a recorder, so the count
+cannot drift from what the flow submits (the study's hand count had, once). Checked here as
+properties of the plan; tests/test_study_flow.py checks that a real run announces the total it runs."""
+
+from __future__ import annotations
+
+from flows.config import load_config
+from flows.pipeline import pipeline_plan
+from flows.study import study_plan
+from flows.study_config import load_study
+
+
+def labels(plan) -> list[str]:
+    return [p.step for p in plan]
+
+
+def test_the_study_plan_names_each_step_once_and_needs_no_store():
+    plan = study_plan(load_study("study-smoke"))
+    assert len(set(labels(plan))) == len(plan)
+    assert labels(plan)[0].startswith("demos") and labels(plan)[-1].startswith("analyse study")
+
+
+def test_a_third_draw_adds_exactly_the_steps_that_name_it():
+    two = labels(study_plan(load_study("study-smoke", ["study.draws=[0,1]", "study.gate=false"])))
+    three = labels(study_plan(load_study("study-smoke", ["study.draws=[0,1,2]", "study.gate=false"])))
+    added = [step for step in three if step not in two]
+    assert added and all("draw 2" in step for step in added)
+    assert [step for step in three if step in set(two)] == two  # the rest of the plan is unchanged
+
+
+def test_the_gate_adds_its_analysis_and_nothing_else():
+    off = labels(study_plan(load_study("study-smoke", ["study.gate=false"])))
+    on = labels(study_plan(load_study("study-smoke", ["study.gate=true"])))
+    assert sorted(set(on) - set(off)) == ["analyse study study-smoke (gate)"] and set(off) <= set(on)
+
+
+def test_another_seed_adds_a_run_and_its_evaluation_per_arm_to_the_pipeline():
+    config = load_config("smoke")
+    one = labels(pipeline_plan(config))
+    two = labels(pipeline_plan(config.model_copy(update={"seeds": [*config.seeds, 7]})))
+    added = sorted(step for step in two if step not in one)
+    assert added == sorted(
+        [f"downstream {arm} seed 7" for arm in config.arms] + [f"evaluate {arm}/seed7" for arm in config.arms]
+    )
