@@ -74,19 +74,18 @@ def submit_vector_stage(steps: StepRunner, config: PipelineConfig) -> dict[str, 
 
 def submit_arm(
     steps: StepRunner,
-    config: PipelineConfig,
     stage: dict[str, Any],
     arm: str,
     seed: int,
-    meta: Any = None,
-    orthogonal_weight: float | None = None,
+    step_config: TrainStepConfig,
+    *,
     label: str | None = None,
-    aux_weight: float | None = None,
+    meta: Any = None,
     selection: Any = None,
-    step_config: TrainStepConfig | None = None,
 ) -> Any:
-    """Id or future of one downstream checkpoint (arm × seed). `stage` holds what the arm's `init` names
-    (`pretrained`, `meta`, ...); `meta` overrides θ_meta; `selection`, the choice of a value it uses."""
+    """Id or future of one downstream checkpoint (arm × seed), trained as `step_config` says. `stage`
+    holds what the arm's `init` names (`pretrained`, `meta`, ...); `meta` is a θ_meta of its own (a
+    sweep's α) in place of the stage's; `selection`, the choice of a value the run uses."""
     spec = ARMS[arm]
     init = meta if spec.init == "meta" and meta is not None else stage[spec.init]
     inputs = {"data": stage["data"]["downstream"], "init": init}
@@ -94,8 +93,6 @@ def submit_arm(
         inputs["vector"] = stage["null_vector" if spec.init == "null_meta" else "vector"]
     if selection is not None:
         inputs["selection"] = selection
-    if step_config is None:
-        step_config = config.downstream_step(arm, seed, orthogonal_weight, aux_weight)
     return steps.submit(train_task, label or f"downstream {arm} seed {seed}", inputs, _dump(step_config))
 
 
@@ -147,7 +144,7 @@ def run_pipeline(steps: StepRunner, cfg: PipelineConfig) -> dict[str, Any]:
     stage = submit_vector_stage(steps, cfg)
     eval_config = _dump(cfg.eval_config())
     checkpoints = {
-        f"{arm}/seed{seed}": submit_arm(steps, cfg, stage, arm, seed)
+        f"{arm}/seed{seed}": submit_arm(steps, stage, arm, seed, cfg.downstream_step(arm, seed))
         for arm in cfg.arms
         for seed in cfg.seeds
     }

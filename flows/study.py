@@ -105,9 +105,7 @@ class _Study:
     ) -> Any:
         """A compared run of an arm that depends on draw d (its name carries the draw: unique)."""
         label = f"downstream {arm} draw {d} seed {seed}"
-        return submit_arm(
-            self.steps, self.cfg, stage, arm, seed, label=label, selection=selection, step_config=step
-        )
+        return submit_arm(self.steps, stage, arm, seed, step, label=label, selection=selection)
 
     def validate_curve(self, run: Any, what: str) -> list[Any]:
         """A downstream run's validation evaluations at every curve budget (its endpoint's parts)."""
@@ -310,19 +308,18 @@ def _run_study(study: _Study) -> dict[str, Any]:
     runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
     for seed in cfg.seeds:
         runs["sft", SHARED, seed] = submit_arm(
-            study.steps, cfg, base, "sft", seed, step_config=cfg.study_downstream("sft", seed)
+            study.steps, base, "sft", seed, cfg.study_downstream("sft", seed)
         )
     aux_grid = [
         (
             w,
             submit_arm(
                 study.steps,
-                cfg,
                 base,
                 "aux",
                 tune,
+                cfg.study_downstream("aux", tune, aux_weight=w),
                 label=f"tune aux weight={w}",
-                step_config=cfg.study_downstream("aux", tune, aux_weight=w),
             ),
         )
         for w in (s.aux_weights if "aux" in arms else [])
@@ -343,7 +340,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
         for seed in cfg.seeds:
             step = cfg.study_downstream("aux", seed, aux_weight=chosen_values["aux_weight"])
             runs["aux", SHARED, seed] = submit_arm(
-                study.steps, cfg, base, "aux", seed, selection=aux_selection, step_config=step
+                study.steps, base, "aux", seed, step, selection=aux_selection
             )
 
     # The gate's arms: SFT from each draw's θ_ao and θ_ft.
@@ -388,13 +385,12 @@ def _run_study(study: _Study) -> dict[str, Any]:
             what = f"capvector α={alpha} λ={scale}"
             run = submit_arm(
                 study.steps,
-                cfg,
                 tuning,
                 "capvector",
                 tune,
-                meta=meta,
+                cfg.study_downstream("capvector", tune, lambda_scale=scale),
                 label=f"tune {what}",
-                step_config=cfg.study_downstream("capvector", tune, lambda_scale=scale),
+                meta=meta,
             )
             grid_cells.append(({"alpha": alpha, "lambda_scale": scale}, run, what))
     cells = [(values, study.validate_curve(run, what)) for values, run, what in grid_cells]

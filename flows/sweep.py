@@ -50,7 +50,7 @@ def submit_sweep(steps: StepRunner, cfg: PipelineConfig) -> Any:
         for lam in lambdas:
             label = f"{arm} α={alpha} λ={lam}"
             checkpoint = submit_arm(
-                steps, cfg, stage, arm, seed, meta=meta, orthogonal_weight=lam, label=label
+                steps, stage, arm, seed, cfg.downstream_step(arm, seed, lam), label=label, meta=meta
             )
             evaluation = steps.submit(
                 evaluate_task, f"validate {label}", {"checkpoint": checkpoint}, validation
