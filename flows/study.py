@@ -38,7 +38,16 @@ from tasks.evaluation import evaluate_task
 from tasks.held_out_loss import held_out_loss_task
 from tasks.progress import emit
 from tasks.selection import chosen, select_task
-from tasks.study_analysis import analyse_study_task, gate_passed, label
+from tasks.study_analysis import analyse_study_task, gate_passed
+from tasks.study_inputs import (
+    CapabilityVector,
+    DownstreamLoss,
+    ExtractionValidation,
+    HeldOutLoss,
+    Selection,
+    StandardRun,
+    TestEvaluation,
+)
 from tasks.training import snapshots_of, train_task
 from tasks.vectors import extract_task, merge_task, null_vector_task
 from tasks.workspace import Workspace, workspace_for
@@ -139,7 +148,7 @@ class _Study:
             c["tiebreak"] = f"loss {i}"
         config = {"name": name, "context": context, "candidates": candidates}
         selection = resolve(self.submit(select_task, f"select {name}", inputs, config))
-        self.analysis_inputs[label("selection", name)] = selection
+        self.analysis_inputs[Selection(name=name).key] = selection
         return selection
 
     def test_start(self, checkpoint: Any, arm: str, draw: int, what: str) -> None:
@@ -150,7 +159,9 @@ class _Study:
                 evaluate_task, f"test {what} @ 0", {"checkpoint": checkpoint}, self.test
             )
         for seed in self.cfg.seeds:
-            self.analysis_inputs[label("test", arm, draw, seed, 0)] = self._started[key]
+            self.analysis_inputs[TestEvaluation(arm=arm, draw=draw, seed=seed, budget=0).key] = self._started[
+                key
+            ]
 
     def test_runs(self, runs: dict[tuple[str, int, int], Any]) -> None:
         """Every compared run at every budget, on the same test goals; its final checkpoint's held-out
@@ -158,11 +169,11 @@ class _Study:
         for (arm, d, seed), run in runs.items():
             what = f"{arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed}"
             for b, checkpoint in self.snapshots(run).items():
-                self.analysis_inputs[label("test", arm, d, seed, b)] = self.submit(
+                self.analysis_inputs[TestEvaluation(arm=arm, draw=d, seed=seed, budget=b).key] = self.submit(
                     evaluate_task, f"test {what} @ {b}", {"checkpoint": checkpoint}, self.test
                 )
             held_out = {"checkpoint": run, "data": self.heldout_downstream}
-            self.analysis_inputs[label("downloss", arm, d, seed)] = self.submit(
+            self.analysis_inputs[DownstreamLoss(arm=arm, draw=d, seed=seed).key] = self.submit(
                 held_out_loss_task, f"held-out loss D_down {what}", held_out, {}
             )
 
@@ -262,11 +273,11 @@ def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, An
     )
     null = submit(null_vector_task, f"draw {d} null vector", {"vector": vector}, {"seed": d})
     for which, run in (("ft", ft), ("ao", ao)):
-        study.analysis_inputs[label("extval", which, d)] = submit(
+        study.analysis_inputs[ExtractionValidation(which=which, draw=d).key] = submit(
             evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, study.validation_ext
         )
-    study.analysis_inputs[label("vector", d)] = vector
-    study.analysis_inputs[label("ft", d)] = ft
+    study.analysis_inputs[CapabilityVector(draw=d).key] = vector
+    study.analysis_inputs[StandardRun(draw=d).key] = ft
     return {**stage, "standard": ft, "auxiliary": ao, "vector": vector, "null_vector": null}
 
 
@@ -276,7 +287,7 @@ def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: A
         for which in ("standard", "auxiliary"):
             kept = study.snapshots(stage[which])
             for b in kept:
-                study.analysis_inputs[label("loss", which, d, b)] = study.submit(
+                study.analysis_inputs[HeldOutLoss(which=which, draw=d, budget=b).key] = study.submit(
                     held_out_loss_task,
                     f"held-out loss draw {d} {which} @ {b}",
                     {"checkpoint": kept[b], "data": heldout},
@@ -300,7 +311,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
     )
     pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
     base = {"data": data, "pretrained": pretrained}
-    study.analysis_inputs[label("extval", "pt", SHARED)] = submit(
+    study.analysis_inputs[ExtractionValidation(which="pt", draw=SHARED).key] = submit(
         evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
     )
 
@@ -403,7 +414,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
             name = "θ_meta" if which == "meta" else "θ_null"
             merge_inputs = {"base": pretrained, "vector": stage[vector], "selection": grid_selection}
             stage[which] = submit(merge_task, f"draw {d} merge {name}", merge_inputs, merge)
-        study.analysis_inputs[label("extval", "meta", d)] = submit(
+        study.analysis_inputs[ExtractionValidation(which="meta", draw=d).key] = submit(
             evaluate_task,
             f"validate draw {d} θ_meta on D_ext",
             {"checkpoint": stage["meta"]},

@@ -1,15 +1,13 @@
 """Step: analyse a study — preconditions, paired comparisons, curves, design MDD — into a `study` artifact.
 
-Inputs are labelled (`label`): `test/<arm>/<draw>/<seed>/<budget>` (test-goal evaluations of the
-compared runs, budget 0 being the checkpoint a run starts from; draw -1 for arms shared by every
-draw), `extval/<ft|ao|meta|pt>/<draw>` (D_ext validation evaluations),
-`loss/<standard|auxiliary>/<draw>/<budget>` (held-out action losses), `vector/<draw>` and `ft/<draw>`
-(γ^d and θ_ft^d, for precondition e) and `selection/<name>`. The primary endpoint is each goal's
+Inputs are keyed by the typed keys of tasks.study_inputs (the compared runs' test evaluations at
+every budget, D_ext validations, held-out losses, γ^d and θ_ft^d, selections), each read back as its
+model. The primary endpoint is each goal's
 success averaged over the declared budgets (`capvector_stats.paired_differences.ENDPOINT`). A `gate`
 stage analyses the arms that test preconditions (b) and (c) before CapVector's arms run
 (`gate_passed`). Scores come from the evaluations' episodes (artifacts.scores.read_episodes); the
-statistics are capvector_stats.paired_differences'. The document holds no timings (its id depends on results
-only); the rendered report reads speeds from the checkpoints' records.
+statistics are capvector_stats.paired_differences'. The document holds no timings (its id depends on
+results only); the rendered report reads speeds from the checkpoints' records.
 """
 
 from __future__ import annotations
@@ -40,6 +38,16 @@ from capvector_stats.paired_differences import (
 from tasks.caching import cached_step
 from tasks.held_out_loss import measured_loss
 from tasks.prefect_task import pipeline_task
+from tasks.study_inputs import (
+    CapabilityVector,
+    DownstreamLoss,
+    ExtractionValidation,
+    HeldOutLoss,
+    Selection,
+    StandardRun,
+    TestEvaluation,
+    inputs_of,
+)
 from tasks.workspace import Workspace, provenance, workspace_for
 
 STUDY_KIND = "study"
@@ -52,10 +60,6 @@ COMPARED = (  # (arm, baseline): the report's headline, then the controls
     ("sft_from_ao", "sft_from_ft"),
     ("meta_sft", "sft"),
 )
-
-
-def label(*parts: Any) -> str:
-    return "/".join(str(p) for p in parts)
 
 
 class StudyDesign(BaseModel):
@@ -138,10 +142,6 @@ class StudyReport(BaseModel):
     so it is a lower bound then)."""
 
 
-def _parse(inputs: dict[str, str], kind: str) -> list[tuple[list[str], str]]:
-    return [(k.split("/")[1:], v) for k, v in sorted(inputs.items()) if k.split("/")[0] == kind]
-
-
 def _episodes(workspace: Workspace, labelled: list[tuple[dict[str, Any], str]]) -> pd.DataFrame:
     """One row per episode with the paired_differences columns; `goal` is the episode's env seed."""
     frame = read_episodes(workspace.api, [e for _, e in labelled]).rename(columns={"seed": "goal"})
@@ -167,8 +167,8 @@ def _compare(episodes: pd.DataFrame, arm: str, baseline: str, budget: int, n_boo
 
 def _convergence(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -> list[dict[str, Any]]:
     losses: dict[tuple[str, int], dict[int, float]] = {}
-    for (which, draw, budget), m in _parse(inputs, "loss"):
-        losses.setdefault((which, int(draw)), {})[int(budget)] = measured_loss(workspace, m)
+    for k, m in inputs_of(inputs, HeldOutLoss):
+        losses.setdefault((k.which, k.draw), {})[k.budget] = measured_loss(workspace, m)
     rows = []
     for (which, draw), by_budget in sorted(losses.items()):
         half, final = min(by_budget), max(by_budget)
@@ -262,8 +262,8 @@ def _preconditions(
 def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Precondition:
     """(e): do γ draws agree (pairwise cosine), and does γ stand out of seed noise (‖γ‖ against
     ‖θ_ft^d − θ_ft^d′‖ over γ's tensors)?"""
-    vectors = {int(d): workspace.path(v) for (d,), v in _parse(inputs, "vector")}
-    standard = {int(d): workspace.path(v) for (d,), v in _parse(inputs, "ft")}
+    vectors = {k.draw: workspace.path(v) for k, v in inputs_of(inputs, CapabilityVector)}
+    standard = {k.draw: workspace.path(v) for k, v in inputs_of(inputs, StandardRun)}
     claim = (
         "γ is reproducible: draws point the same way (mean pairwise cos(γ^d, γ^d′) > 0.5) and ‖γ‖ exceeds "
         "the seed-noise vector ‖θ_ft^d − θ_ft^d′‖"
@@ -319,19 +319,24 @@ def gate_passed(workspace: Workspace, report_id: str) -> bool:
 
 
 def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -> StudyReport:
-    tests = [
-        ({"arm": arm, "draw": int(d), "seed": int(s), "budget": int(b)}, e)
-        for (arm, d, s, b), e in _parse(inputs, "test")
-    ]
+    tests = [(k.model_dump(), e) for k, e in inputs_of(inputs, TestEvaluation)]
     if not tests:
         raise ValueError("a study analysis needs test evaluations (inputs test/<arm>/<draw>/<seed>/<budget>)")
     episodes = _episodes(workspace, tests)
     episodes = pd.concat([episodes, endpoint_rows(episodes, design.endpoint_budgets)], ignore_index=True)
     ext = []
-    for (which, d), e in _parse(inputs, "extval"):
+    for k, e in inputs_of(inputs, ExtractionValidation):
         seed = 0  # one run each: paired by draw
         ext.append(
-            ({"arm": which, "draw": SHARED_DRAW if which == "pt" else int(d), "seed": seed, "budget": 0}, e)
+            (
+                {
+                    "arm": k.which,
+                    "draw": SHARED_DRAW if k.which == "pt" else k.draw,
+                    "seed": seed,
+                    "budget": 0,
+                },
+                e,
+            )
         )
     episodes_ext = _episodes(workspace, ext) if ext else pd.DataFrame(columns=episodes.columns)
     budgets = sorted(b for b in episodes["budget"].unique() if b != ENDPOINT)
@@ -362,7 +367,7 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         preconditions=preconditions,
         comparisons=comparisons,
         curves=curves,
-        selections={name[0]: sel for name, sel in _parse(inputs, "selection")},
+        selections={k.name: sel for k, sel in inputs_of(inputs, Selection)},
         convergence=convergence,
         heldout_loss=_heldout_loss(workspace, inputs),
         per_task={
@@ -384,7 +389,7 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
 
 def _heldout_loss(workspace: Workspace, inputs: dict[str, str]) -> list[LossComparison]:
     losses = {
-        (arm, int(d), int(s)): measured_loss(workspace, m) for (arm, d, s), m in _parse(inputs, "downloss")
+        (k.arm, k.draw, k.seed): measured_loss(workspace, m) for k, m in inputs_of(inputs, DownstreamLoss)
     }
     out = []
     for arm, baseline in COMPARED:

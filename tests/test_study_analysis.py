@@ -8,7 +8,15 @@ import pytest
 
 from capvector_stats.paired_differences import ENDPOINT
 from tasks.held_out_loss import MEASUREMENT_KIND
-from tasks.study_analysis import StudyDesign, analyse, gate_passed, label, run_analyse_study
+from tasks.study_analysis import StudyDesign, analyse, gate_passed, run_analyse_study
+from tasks.study_inputs import (
+    CapabilityVector,
+    DownstreamLoss,
+    ExtractionValidation,
+    HeldOutLoss,
+    StandardRun,
+    TestEvaluation,
+)
 from tasks.workspace import Workspace
 
 TASKS = ("reach-v3", "push-v3")
@@ -39,18 +47,24 @@ def _study(ws: Workspace, draws: list[int], seeds: list[int]) -> tuple[dict[str,
         for d in [-1] if arm == "sft" else draws:
             for s in seeds:
                 for b in (10, 20):
-                    inputs[label("test", arm, d, s, b)] = _evaluation(ws, f"{arm} {d} {s} {b}", p, rng)
-    inputs[label("extval", "pt", -1)] = _evaluation(ws, "pt", 0.9, rng)
+                    inputs[TestEvaluation(arm=arm, draw=d, seed=s, budget=b).key] = _evaluation(
+                        ws, f"{arm} {d} {s} {b}", p, rng
+                    )
+    inputs[ExtractionValidation(which="pt", draw=-1).key] = _evaluation(ws, "pt", 0.9, rng)
     for d in draws:
-        inputs[label("extval", "ft", d)] = _evaluation(ws, f"ft {d}", 0.2, rng)
-        inputs[label("extval", "ao", d)] = _evaluation(ws, f"ao {d}", 0.8, rng)  # (b): clearly better
-        inputs[label("extval", "meta", d)] = _evaluation(ws, f"meta {d}", 0.3, rng)  # (d): clearly worse
+        inputs[ExtractionValidation(which="ft", draw=d).key] = _evaluation(ws, f"ft {d}", 0.2, rng)
+        inputs[ExtractionValidation(which="ao", draw=d).key] = _evaluation(
+            ws, f"ao {d}", 0.8, rng
+        )  # (b): clearly better
+        inputs[ExtractionValidation(which="meta", draw=d).key] = _evaluation(
+            ws, f"meta {d}", 0.3, rng
+        )  # (d): clearly worse
         for run, curve in (
             ("standard", (1.0, 0.99, 0.985)),
             ("auxiliary", (1.0, 0.8, 0.6)),
         ):  # (a): ao still falls
             for b, v in zip((50, 75, 100), curve, strict=True):
-                inputs[label("loss", run, d, b)] = _loss(ws, f"{run} {d} {b}", v)
+                inputs[HeldOutLoss(which=run, draw=d, budget=b).key] = _loss(ws, f"{run} {d} {b}", v)
     design = StudyDesign(
         name="synthetic",
         arms=list(TRUE_P),
@@ -128,8 +142,12 @@ def test_the_endpoint_is_each_goals_mean_over_the_budgets(tmp_path):
     inputs = {}
     for s in (0, 1):
         for b, p in ((10, 0.0), (20, 1.0)):
-            inputs[label("test", "capvector", 0, s, b)] = _evaluation(ws, f"c {s} {b}", p, rng)
-            inputs[label("test", "sft", -1, s, b)] = _evaluation(ws, f"s {s} {b}", 0.0, rng)
+            inputs[TestEvaluation(arm="capvector", draw=0, seed=s, budget=b).key] = _evaluation(
+                ws, f"c {s} {b}", p, rng
+            )
+            inputs[TestEvaluation(arm="sft", draw=-1, seed=s, budget=b).key] = _evaluation(
+                ws, f"s {s} {b}", 0.0, rng
+            )
     _, design = _study(Workspace(tmp_path / "other"), draws=[0], seeds=[0, 1])
     design = design.model_copy(update={"arms": ["sft", "capvector"], "draws": [0]})
     report = analyse(ws, inputs, design)
@@ -159,13 +177,13 @@ def test_precondition_e_measures_how_alike_the_draws_are_against_seed_noise(tmp_
     gamma = {0: {"w": base * 3}, 1: {"w": base * 3 + 0.1 * torch.randn(50)}}
     ft = {0: {"w": torch.zeros(50)}, 1: {"w": torch.full((50,), 0.1)}}  # seed noise ‖·‖ = 0.71
     for d in (0, 1):
-        inputs[label("vector", d)] = _tensors_file(ws, tmp_path, f"gamma{d}", gamma[d], "vector")
-        inputs[label("ft", d)] = _tensors_file(ws, tmp_path, f"ft{d}", ft[d], "checkpoint")
+        inputs[CapabilityVector(draw=d).key] = _tensors_file(ws, tmp_path, f"gamma{d}", gamma[d], "vector")
+        inputs[StandardRun(draw=d).key] = _tensors_file(ws, tmp_path, f"ft{d}", ft[d], "checkpoint")
     e = next(p for p in analyse(ws, inputs, design).preconditions if p.key == "e")
     assert e.holds is True and e.detail_values["mean_cosine"] > 0.99
     assert e.detail_values["seed_noise_norm"] == pytest.approx(0.1 * 50**0.5, rel=1e-5)
     opposite = {"w": -gamma[0]["w"]}
-    inputs[label("vector", 1)] = _tensors_file(ws, tmp_path, "gamma1-opposite", opposite, "vector")
+    inputs[CapabilityVector(draw=1).key] = _tensors_file(ws, tmp_path, "gamma1-opposite", opposite, "vector")
     e = next(p for p in analyse(ws, inputs, design).preconditions if p.key == "e")
     assert e.holds is False and e.detail_values["mean_cosine"] == pytest.approx(-1.0)
 
@@ -174,9 +192,9 @@ def test_the_secondary_endpoint_pairs_held_out_losses_by_draw_and_seed(tmp_path)
     ws = Workspace(tmp_path / "home")
     inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1, 2])
     for s in (0, 1, 2):
-        inputs[label("downloss", "sft", -1, s)] = _loss(ws, f"sft {s}", 0.30 + 0.01 * s)
+        inputs[DownstreamLoss(arm="sft", draw=-1, seed=s).key] = _loss(ws, f"sft {s}", 0.30 + 0.01 * s)
         for d in (0, 1):  # CapVector 0.05 lower than the shared SFT run of its seed, ± a little
-            inputs[label("downloss", "capvector", d, s)] = _loss(
+            inputs[DownstreamLoss(arm="capvector", draw=d, seed=s).key] = _loss(
                 ws, f"cv {d} {s}", 0.25 + 0.01 * s + 0.002 * d
             )
     report = analyse(ws, inputs, design)
