@@ -11,7 +11,8 @@ from the catalogue alone:
 - draw: `draw <d>` in its name, else in the name of its `init` or `regularized_by` parent (a study's
   `downstream capvector seed 0` starts from `draw 1 merge θ_meta`); none for runs shared by every draw;
 - seed, lr, steps, adapter, aux, aux_weight and λ from its step config and summary: `lambda_weight`
-  (`orthogonal.weight`), `lambda_scale` (its mode) and `lambda_applied` (the weight the run used);
+  (`orthogonal.weight`), `lambda_mode` (`none` or `action_gradient`) and `lambda_applied` (the weight
+  the run used);
 - α: the `alpha` of the `vector` edge into its `init` (θ_meta = θ_pt + α·γ);
 - `success@<budget>`: the mean over tasks, and `<task>@<budget>` per task, of the latest evaluation of
   the checkpoint it had at that budget (a snapshot, or the final one at `steps`), under one evaluation
@@ -81,7 +82,7 @@ WITH trained AS (
         TRY_CAST(t.ts->'train'->>'seed' AS BIGINT) AS seed,
         a.alpha,
         TRY_CAST(t.ts->'orthogonal'->>'weight' AS DOUBLE) AS lambda_weight,
-        t.ts->'orthogonal'->>'scale' AS lambda_scale,
+        t.ts->'orthogonal'->>'scale' AS lambda_mode,
         TRY_CAST(t.summary->>'orthogonal_lambda' AS DOUBLE) AS lambda_applied,
         TRY_CAST(t.ts->'train'->>'lr' AS DOUBLE) AS lr,
         t.ts->>'adapter' AS adapter,
@@ -98,7 +99,7 @@ WITH trained AS (
     WHERE e.role = 'snapshot'
 )"""
 RUN_COLUMNS = (
-    "id, name, stage, arm, draw, seed, alpha, lambda_weight, lambda_scale, lambda_applied, lr, adapter, "
+    "id, name, stage, arm, draw, seed, alpha, lambda_weight, lambda_mode, lambda_applied, lr, adapter, "
     "steps, aux, aux_weight"
 )
 SCORED_WITH = """, scores AS (

@@ -178,7 +178,7 @@ def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: d
                     model, dataset, regularizer, cfg.train.seed, cfg.train.batch_size
                 )
                 regularizer.weight = cfg.orthogonal.weight * scale
-                lam["lambda_scale"] = scale
+                lam["gradient_ratio"] = scale  # ‖∇ action loss‖/‖γ‖ at the start: λ = weight × this
             lam["orthogonal_lambda"] = regularizer.weight
             extra["orthogonal"] = regularizer
         extra |= form.extra_losses()

@@ -134,7 +134,7 @@ def test_every_trained_run_once_with_its_settings_and_success_per_budget_and_tas
     cap = rows["downstream capvector seed 0"]
     assert cap["id"] == ids["cap"]
     assert (cap["stage"], cap["arm"], cap["draw"], cap["seed"]) == ("downstream", "capvector", 1, 0)
-    assert (cap["alpha"], cap["lambda_weight"], cap["lambda_scale"], cap["lambda_applied"]) == (
+    assert (cap["alpha"], cap["lambda_weight"], cap["lambda_mode"], cap["lambda_applied"]) == (
         0.5,
         0.25,
         "action_gradient",

@@ -80,9 +80,9 @@ def test_every_run_is_tested_on_the_same_goals_at_every_budget(study_home):
     kept = ws.api.get(report.final_checkpoints["capvector"][0]).config
     assert set(kept["snapshots"]) == {str(b) for b in config.curve_budgets[:-1]}
     summary = kept["summary"]
-    assert summary["lambda_scale"] > 0
+    assert summary["gradient_ratio"] > 0
     chosen = report.design.chosen["lambda_scale"]
-    assert summary["orthogonal_lambda"] == pytest.approx(chosen * summary["lambda_scale"])
+    assert summary["orthogonal_lambda"] == pytest.approx(chosen * summary["gradient_ratio"])
 
 
 def test_the_null_vector_has_gammas_norms_and_is_merged_and_regularized_like_it(study_home):
