@@ -183,9 +183,9 @@ two runs made in that batch, so some of its size was the luck of the pick.
 None of the six reaches the 10-point target with its interval above 0. The gate's other
 preconditions, where measured (runs 1, 4 and 5), were not shown either. (b) θ_ao against θ_ft on
 D_ext validation goals: +5.8 in run 1 (two draws, uninformative), −1.7 [−7.2, +3.9] in run 4 and
-+0.0 [−10.4, +10.4] in run 5. In runs 4 and 5 the extraction tasks are at 82-91 % for both, near the ceiling. (c) SFT from
-θ_ao − SFT from θ_ft: +2.7 (MDD ~30), +4.0 [−7.5, +17.3] and +4.1 [−0.3, +8.3]. So the gate would
-stop, as it does on the state testbed.
++0.0 [−10.4, +10.4] in run 5. In runs 4 and 5 the extraction tasks are at 82-91 % for both, near
+the ceiling. (c) SFT from θ_ao − SFT from θ_ft: +2.7 (MDD ~30), +4.0 [−7.5, +17.3] and +4.1 [−0.3,
++8.3]. So the gate would stop, as it does on the state testbed.
 
 **Setup.** Runs 1-3 use the control studies' splits (docs/calibration.md): θ_pt is trained on 8
 pretraining tasks; D_ext has 6 tasks and D_down 7. Their difficulty was calibrated on state
