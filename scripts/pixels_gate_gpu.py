@@ -2,14 +2,16 @@
 
 The study flow needs Prefect, DuckDB and a catalogue; a lent GPU machine has none of them and is held
 for minutes. This script runs the same recipe's gate phase from `capvector_core` alone: pixels
-observations (64×64 corner2 images + proprioception), the `spatial_depth` objective, the control
-study's calibrated splits, and the four arms the gate needs (SFT, auxiliary SFT, SFT from θ_ao, SFT
-from θ_ft), plus θ_ao vs θ_ft on D_ext validation goals (precondition b). Training runs on the GPU while
-a process pool rolls out each finished checkpoint on the CPUs. Every episode is appended to
-`<out>/episodes.jsonl` as it finishes (a run cut short still returns what it measured); `docs/` is
-written from those records on a workstation by `scripts/pixels_gate_report.py`.
+observations (64×64 corner2 images + proprioception), the `spatial_depth` objective (or, with
+`--objective spatial`, the 9-d hand/object/goal xyz targets), the control study's calibrated splits
+(or, with `--tasks hard`, `study-control-hard`'s), and the four arms the gate needs (SFT, auxiliary
+SFT, SFT from θ_ao, SFT from θ_ft), plus θ_ao vs θ_ft on D_ext validation goals (precondition b).
+Training runs on the GPU while a process pool rolls out each finished checkpoint on the CPUs. Every
+episode is appended to `<out>/episodes.jsonl` as it finishes (a run cut short still returns what it
+measured); `docs/` is written from those records on a workstation by `scripts/pixels_gate_report.py`.
 
-Nothing is chosen here: every value (aux weight 0.5, lr, budgets) is declared below before a rollout.
+Nothing is chosen here: every value (aux weight 0.5, lr, budgets) is declared below or on the command
+line before a rollout; with several `--aux-weights` the report chooses one on validation goals.
 
     MUJOCO_GL=egl python scripts/pixels_gate_gpu.py --out /tmp/gate --scale tiny   # a CPU dry run
 """
@@ -230,6 +232,8 @@ def main() -> None:
         steps = args.downstream_steps
         s.update(downstream_steps=steps, budgets=[steps // 4, steps // 2, steps])
     s["seeds"] = args.seeds or s["seeds"]
+    if args.scale == "tiny" and args.tasks != "calibrated":
+        ap.error("--scale tiny has its own two-task splits; --tasks applies to --scale gpu")
     if args.scale != "tiny":
         s["extraction"], s["downstream"] = TASK_SETS[args.tasks]
     aux_base = AUX.model_copy(update={"name": args.objective})

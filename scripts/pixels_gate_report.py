@@ -204,7 +204,8 @@ seeds, run 6: 6). Test goals are 20 per task (seeds 100000+), validation goals 1
 50000+), horizon 150, 4 actions executed per call. The auxiliary weight was 0.5 (the preset's) in run 1.
 In runs 2, 4 and 5 it was chosen on D_down validation goals (among 0.1, 0.5 and 2, then 0.5 and 2)
 before the test rows were read. Runs 3 and 6 used their predecessor's choice. Run 6 retrained θ_pt
-on the CPU (same seed, other numerics), so its θ_pt is not run 4's bit for bit.
+on the CPU (same seed, other numerics), and its θ_pt is a different model: 9.2 % on the test goals
+against run 4's 0.0 %. So run 6 replicates run 4's design, not its starting point.
 
 **What was tried, in order, and why.** Run 1 is the gate phase of the script's declared design. It showed SFT
 near the ceiling after 400 steps. Scarcer data (2 demos per task) is the textbook setting where a
@@ -223,7 +224,7 @@ more room to be shaped), multi-stage tasks, and distractors that change between 
 test goals (docs/positive_control.md).
 
 Speed: on the H200 (d_model 128, batch 64, with the rollout pool sharing the CPUs), SFT trained at
-62-107 steps/s and auxiliary SFT at 47-77 steps/s, in Python-bound small-model steps. Run 6 trained at
+51-107 steps/s and auxiliary SFT at 46-77 steps/s, in Python-bound small-model steps. Run 6 trained at
 1.2-3.3 steps/s on 2 shared CPU cores, which is 41 minutes for 12 runs plus θ_pt. These figures are
 not a clean cost comparison; `benchmarks/results/step_cost.md` is.
 
