@@ -11,11 +11,12 @@
 #   control-2demos -> docs/study_control_small_2demos.md  `control-small` with 2 downstream demos per task
 #   control-large  -> docs/study_control_small_large.md   `control-small` with d_model 128 x 4 layers
 #   control-large-3draws -> docs/study_control_small_large_3draws.md  the same with a third γ draw
+#   control-large-5draws -> docs/study_control_small_large_5draws.md  the same with five γ draws
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
-#        control-2demos|control-large|control-large-3draws|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-2demos|control-large|control-large-3draws|control-large-5draws|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -32,12 +33,14 @@ case "$preset" in
   control-2demos)
     .venv/bin/capvector study --preset study-control-small --set data.episodes_downstream=2 \
       --report docs/study_control_small_2demos.md ;;
-  control-large|control-large-3draws)
-    draws=$([ "$preset" = control-large ] && echo "[0,1]" || echo "[0,1,2]")
-    report=$([ "$preset" = control-large ] && echo docs/study_control_small_large.md \
-      || echo docs/study_control_small_large_3draws.md)
+  control-large | control-large-3draws | control-large-5draws)
+    case "$preset" in
+      control-large) draws="[0,1]" report=docs/study_control_small_large.md ;;
+      control-large-3draws) draws="[0,1,2]" report=docs/study_control_small_large_3draws.md ;;
+      *) draws="[0,1,2,3,4]" report=docs/study_control_small_large_5draws.md ;;
+    esac
     .venv/bin/capvector study --preset study-control-small --set name=study-control-small-large \
       --set policy.d_model=128 --set policy.n_layers=4 --set "study.draws=$draws" --report "$report" ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|state|pixels]" >&2
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|state|pixels]" >&2
      exit 2 ;;
 esac
