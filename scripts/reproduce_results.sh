@@ -12,11 +12,12 @@
 #   control-large  -> docs/study_control_small_large.md   `control-small` with d_model 128 x 4 layers
 #   control-large-3draws -> docs/study_control_small_large_3draws.md  the same with a third γ draw
 #   control-large-5draws -> docs/study_control_small_large_5draws.md  the same with five γ draws
+#   control-large-2000 -> docs/study_control_small_large_2000.md  3 draws, 2000-step extraction runs
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
-#        control-2demos|control-large|control-large-3draws|control-large-5draws|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -41,6 +42,11 @@ case "$preset" in
     esac
     .venv/bin/capvector study --preset study-control-small --set name=study-control-small-large \
       --set policy.d_model=128 --set policy.n_layers=4 --set "study.draws=$draws" --report "$report" ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|state|pixels]" >&2
+  control-large-2000)
+    .venv/bin/capvector study --preset study-control-small --set name=study-control-small-large \
+      --set policy.d_model=128 --set policy.n_layers=4 --set "study.draws=[0,1,2]" \
+      --set extraction.steps=2000 --set extraction.checkpoint_every=500 \
+      --report docs/study_control_small_large_2000.md ;;
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|state|pixels]" >&2
      exit 2 ;;
 esac
