@@ -115,8 +115,6 @@ class PlannedStep:
 class PlanRecorder:
     """Records the steps a flow submits, in order, without running or looking up any: the plan."""
 
-    home = None
-
     def __init__(self) -> None:
         self.plan: list[PlannedStep] = []
 

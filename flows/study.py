@@ -30,7 +30,7 @@ from prefect import flow
 from flows.config import ARMS
 from flows.pipeline import step_runner, submit_arm
 from flows.runs import publish_markdown, recorded_run, run_name
-from flows.steps import PlannedStep, PlanRecorder, StepRunner, resolve
+from flows.steps import PlannedStep, PlanRecorder, StepRunner, record_plan, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from flows.study_markdown import load_study_report, study_markdown
 from tasks.data import collect_demos_task
@@ -44,6 +44,7 @@ from tasks.study_inputs import (
     DownstreamLoss,
     ExtractionValidation,
     HeldOutLoss,
+    InputKey,
     Selection,
     StandardRun,
     TestEvaluation,
@@ -64,9 +65,7 @@ def study_plan(cfg: StudyConfig) -> list[PlannedStep]:
     """Every step the study submits when its gate passes, in order, from the flow's own code run
     against a recorder: nothing runs or is looked up, and each choice takes its first candidate
     (a choice changes a step's config, never how many steps follow)."""
-    recorder = PlanRecorder()
-    _run_study(_PlannedStudy(cfg, recorder))
-    return recorder.plan
+    return record_plan(lambda recorder: _run_study(_PlannedStudy(cfg, recorder)))
 
 
 def study_steps(cfg: StudyConfig) -> int:
@@ -93,6 +92,10 @@ class _Study:
 
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
+
+    def record(self, key: InputKey, value: Any) -> None:
+        """An input of the study's analysis, under its typed key (tasks.study_inputs)."""
+        self.analysis_inputs[key.key] = value
 
     def snapshots(self, run: Any) -> dict[int, str]:
         """Budget -> the checkpoint a run kept after that many steps (waits for the run)."""
@@ -148,7 +151,7 @@ class _Study:
             c["tiebreak"] = f"loss {i}"
         config = {"name": name, "context": context, "candidates": candidates}
         selection = resolve(self.submit(select_task, f"select {name}", inputs, config))
-        self.analysis_inputs[Selection(name=name).key] = selection
+        self.record(Selection(name=name), selection)
         return selection
 
     def test_start(self, checkpoint: Any, arm: str, draw: int, what: str) -> None:
@@ -159,9 +162,7 @@ class _Study:
                 evaluate_task, f"test {what} @ 0", {"checkpoint": checkpoint}, self.test
             )
         for seed in self.cfg.seeds:
-            self.analysis_inputs[TestEvaluation(arm=arm, draw=draw, seed=seed, budget=0).key] = self._started[
-                key
-            ]
+            self.record(TestEvaluation(arm=arm, draw=draw, seed=seed, budget=0), self._started[key])
 
     def test_runs(self, runs: dict[tuple[str, int, int], Any]) -> None:
         """Every compared run at every budget, on the same test goals; its final checkpoint's held-out
@@ -169,13 +170,11 @@ class _Study:
         for (arm, d, seed), run in runs.items():
             what = f"{arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed}"
             for b, checkpoint in self.snapshots(run).items():
-                self.analysis_inputs[TestEvaluation(arm=arm, draw=d, seed=seed, budget=b).key] = self.submit(
-                    evaluate_task, f"test {what} @ {b}", {"checkpoint": checkpoint}, self.test
-                )
+                test = self.submit(evaluate_task, f"test {what} @ {b}", {"checkpoint": checkpoint}, self.test)
+                self.record(TestEvaluation(arm=arm, draw=d, seed=seed, budget=b), test)
             held_out = {"checkpoint": run, "data": self.heldout_downstream}
-            self.analysis_inputs[DownstreamLoss(arm=arm, draw=d, seed=seed).key] = self.submit(
-                held_out_loss_task, f"held-out loss D_down {what}", held_out, {}
-            )
+            loss = self.submit(held_out_loss_task, f"held-out loss D_down {what}", held_out, {})
+            self.record(DownstreamLoss(arm=arm, draw=d, seed=seed), loss)
 
     def analyse(self, stage: str, design: dict[str, Any]) -> str:
         inputs = {k: resolve(v) for k, v in self.analysis_inputs.items()}
@@ -273,11 +272,12 @@ def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, An
     )
     null = submit(null_vector_task, f"draw {d} null vector", {"vector": vector}, {"seed": d})
     for which, run in (("ft", ft), ("ao", ao)):
-        study.analysis_inputs[ExtractionValidation(which=which, draw=d).key] = submit(
+        validation = submit(
             evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, study.validation_ext
         )
-    study.analysis_inputs[CapabilityVector(draw=d).key] = vector
-    study.analysis_inputs[StandardRun(draw=d).key] = ft
+        study.record(ExtractionValidation(which=which, draw=d), validation)
+    study.record(CapabilityVector(draw=d), vector)
+    study.record(StandardRun(draw=d), ft)
     return {**stage, "standard": ft, "auxiliary": ao, "vector": vector, "null_vector": null}
 
 
@@ -287,12 +287,13 @@ def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: A
         for which in ("standard", "auxiliary"):
             kept = study.snapshots(stage[which])
             for b in kept:
-                study.analysis_inputs[HeldOutLoss(which=which, draw=d, budget=b).key] = study.submit(
+                loss = study.submit(
                     held_out_loss_task,
                     f"held-out loss draw {d} {which} @ {b}",
                     {"checkpoint": kept[b], "data": heldout},
                     {},
                 )
+                study.record(HeldOutLoss(which=which, draw=d, budget=b), loss)
 
 
 def _run_study(study: _Study) -> dict[str, Any]:
@@ -311,9 +312,10 @@ def _run_study(study: _Study) -> dict[str, Any]:
     )
     pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
     base = {"data": data, "pretrained": pretrained}
-    study.analysis_inputs[ExtractionValidation(which="pt", draw=SHARED).key] = submit(
+    pt_validation = submit(
         evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
     )
+    study.record(ExtractionValidation(which="pt", draw=SHARED), pt_validation)
 
     # Runs that need no choice: SFT, the auxiliary arm's grid (tuning seed).
     runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
@@ -414,12 +416,13 @@ def _run_study(study: _Study) -> dict[str, Any]:
             name = "θ_meta" if which == "meta" else "θ_null"
             merge_inputs = {"base": pretrained, "vector": stage[vector], "selection": grid_selection}
             stage[which] = submit(merge_task, f"draw {d} merge {name}", merge_inputs, merge)
-        study.analysis_inputs[ExtractionValidation(which="meta", draw=d).key] = submit(
+        meta_validation = submit(
             evaluate_task,
             f"validate draw {d} θ_meta on D_ext",
             {"checkpoint": stage["meta"]},
             study.validation_ext,
         )
+        study.record(ExtractionValidation(which="meta", draw=d), meta_validation)
         for arm in rest:
             start = stage["null_meta" if arm == "null_capvector" else "meta"]
             study.test_start(start, arm, d, f"draw {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}")
