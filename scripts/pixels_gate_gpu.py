@@ -5,8 +5,11 @@ for minutes. This script runs the same recipe's gate phase from `capvector_core`
 observations (64×64 corner2 images + proprioception), the `spatial_depth` objective (or, with
 `--objective spatial`, the 9-d hand/object/goal xyz targets), the control study's calibrated splits
 (or, with `--tasks hard`, `study-control-hard`'s), and the four arms the gate needs (SFT, auxiliary
-SFT, SFT from θ_ao, SFT from θ_ft), plus θ_ao vs θ_ft on D_ext validation goals (precondition b).
-Training runs on the GPU while a process pool rolls out each finished checkpoint on the CPUs. Every
+SFT, SFT from θ_ao, SFT from θ_ft), plus θ_ao vs θ_ft on D_ext validation goals (precondition b)
+and their held-out action loss at half and full length (precondition a). With `--observation
+state_features` it runs the control studies' testbed instead (state through random features, the
+`spatial` objective) with the larger policy. `--train-procs` runs that many small, Python-bound
+trainings at once on the GPU, while a process pool rolls out each finished checkpoint on the CPUs. Every
 episode is appended to `<out>/episodes.jsonl` as it finishes (a run cut short still returns what it
 measured); `docs/` is written from those records on a workstation by `scripts/pixels_gate_report.py`.
 
@@ -22,14 +25,15 @@ import argparse
 import json
 import os
 import time
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
 
 import torch
 
-from capvector_core.demos import VALIDATION_SEED_BASE, DemoConfig, DemoDataset, collect_demos
+from capvector_core.demos import UNIT_SEEDS, VALIDATION_SEED_BASE, DemoConfig, DemoDataset, collect_demos
 from capvector_core.evaluation import EvalConfig, evaluate
+from capvector_core.held_out_loss import held_out_action_loss
 from capvector_core.policy import build_policy, load_policy
 from capvector_core.trainer import AuxConfig, TrainConfig, train
 
@@ -127,24 +131,68 @@ POLICY = {
     "n_heads": 4,
     "chunk_size": 8,
 }
+# `--observation state_features`: the control studies' testbed (state through 128 random sine features
+# plus 32 high-frequency goal distractors, docs/calibration.md) with the larger policy of
+# docs/study_control_small_large*.md.
+STATE_POLICY = {
+    "obs_mode": "state",
+    "d_model": 128,
+    "n_layers": 4,
+    "n_heads": 4,
+    "chunk_size": 8,
+    "obs_transform": {"kind": "random_features"},
+}
 AUX = AuxConfig(name="spatial_depth", weight=0.5)
+HELDOUT_EPISODES = 3  # held-out demos per extraction task: precondition (a), as the study measures it
 
 
 def train_config(
-    steps: int, batch: int, seed: int, aux: AuxConfig | None, snapshots: list[int] = ()
+    steps: int,
+    batch: int,
+    seed: int,
+    aux: AuxConfig | None,
+    snapshots: list[int] = (),
+    lr: float = 1e-3,
 ) -> TrainConfig:
     """The study presets' optimizer (AdamW, lr 1e-3, batch 64); the device is whatever the machine has."""
     return TrainConfig(
         steps=steps,
         batch_size=batch,
-        lr=1e-3,
+        lr=lr,
         warmup_steps=min(50, steps // 10),
         seed=seed,
         aux=aux,
         checkpoint_every=steps,
         snapshot_steps=list(snapshots),
         device="auto",
+        num_threads=1,
     )
+
+
+def train_job(
+    name: str, policy: dict, init: str | None, data: str, config: dict, work: str, heldout: str | None
+):
+    """One training run (in a training-pool process, sharing the GPU with the others).
+
+    Returns its checkpoints by step and its speed; with `heldout`, also the held-out action loss at
+    each checkpoint (precondition (a): flat over the second half)."""
+    torch.set_num_threads(1)
+    config = TrainConfig.model_validate(config)
+    torch.manual_seed(config.seed)
+    model = build_policy(policy, device="auto") if init is None else load_policy(init, device="auto")
+    result = train(model, DemoDataset.load(data), config, Path(work) / name)
+    paths = {**{b: str(p) for b, p in result.snapshots.items()}, config.steps: str(result.weights_path)}
+    summary = {
+        "steps_per_s": result.steps_per_s,
+        "final_loss": result.final_loss,
+        "device": result.execution.get("device"),
+    }
+    if heldout is not None:
+        held = DemoDataset.load(heldout)
+        summary["heldout_loss"] = {
+            b: held_out_action_loss(p, held, 256, 0, device="auto") for b, p in sorted(paths.items())
+        }
+    return name, paths, summary
 
 
 def rollouts(path: str, config: dict, labels: dict) -> list[dict]:
@@ -162,21 +210,20 @@ def rollouts(path: str, config: dict, labels: dict) -> list[dict]:
 class Episodes:
     """Submits evaluations to the pool and appends each one's rows to episodes.jsonl as it returns."""
 
-    def __init__(self, out: Path, pool: ProcessPoolExecutor):
-        self.path, self.pool, self.pending = out / "episodes.jsonl", pool, []
+    def __init__(self, out: Path, pool: ProcessPoolExecutor, observation: dict):
+        self.path, self.pool, self.observation, self.pending = out / "episodes.jsonl", pool, observation, []
 
     def submit(
-        self, path: Path, tasks: list[str], goals: int, seed_base: int, horizon: int, split="test", **labels
+        self, path: str, tasks: list[str], goals: int, seed_base: int, horizon: int, split="test", **labels
     ) -> None:
         config = {
             "tasks": tasks,
             "episodes_per_task": goals,
             "seed_base": seed_base,
             "horizon": horizon,
-            "obs_mode": "pixels",
-            "image_size": 64,
             "execute_steps": 4,
             "batch_size": 35,
+            **self.observation,
         }
         future = self.pool.submit(rollouts, str(path), config, {"split": split, **labels})
         future.add_done_callback(self._append)
@@ -204,18 +251,30 @@ def stamp() -> str:
     return f"{time.perf_counter() - START:6.1f} s"
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--work", type=Path, default=Path("/tmp/pixels-gate"))
     ap.add_argument("--scale", choices=sorted(SCALES), default="gpu")
-    ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
+    ap.add_argument("--workers", type=int, help="evaluation processes (default: the CPUs the trainers leave)")
+    ap.add_argument("--train-procs", type=int, default=1, help="training runs at once, sharing the GPU")
+    ap.add_argument(
+        "--observation",
+        choices=["pixels", "state_features"],
+        default="pixels",
+        help="64×64 pixels, or the control studies' state through random features (objective `spatial`)",
+    )
     ap.add_argument(
         "--downstream-episodes", type=int, help="demos per downstream task (default: the scale's)"
     )
     ap.add_argument("--aux-weights", type=float, nargs="+", default=[AUX.weight], help="aux arms' weights")
+    ap.add_argument("--extraction-aux-weight", type=float, default=AUX.weight, help="θ_ao's aux weight")
+    ap.add_argument("--extraction-steps", type=int, help="θ_ft / θ_ao steps (default: the scale's)")
+    ap.add_argument("--extraction-lr", type=float, default=1e-3, help="θ_ft / θ_ao learning rate")
     ap.add_argument("--downstream-steps", type=int, help="final budget; the others at 1/4 and 1/2 of it")
     ap.add_argument("--seeds", type=int, nargs="+", help="downstream training seeds (default: the scale's)")
+    ap.add_argument("--draws", type=int, nargs="+", help="γ draws (default: the scale's)")
+    ap.add_argument("--test-goals", type=int, help="test goals per downstream task (default: the scale's)")
     ap.add_argument("--no-extraction", action="store_true", help="only SFT and the auxiliary arm(s)")
     ap.add_argument(
         "--objective",
@@ -227,93 +286,143 @@ def main() -> None:
         "--tasks", choices=sorted(TASK_SETS), default="calibrated", help="extraction and downstream task sets"
     )
     args = ap.parse_args()
+    if args.scale == "tiny" and args.tasks != "calibrated":
+        ap.error("--scale tiny has its own two-task splits; --tasks applies to --scale gpu")
+    if args.observation == "state_features" and args.objective != "spatial":
+        ap.error("--observation state_features has no depth render: use --objective spatial")
+    if args.workers is None:
+        args.workers = max(1, (os.cpu_count() or 2) - args.train_procs - 1)
+    return args
+
+
+def main() -> None:
+    args = parse_args()
     s = dict(SCALES[args.scale])
     if args.downstream_steps:
         steps = args.downstream_steps
         s.update(downstream_steps=steps, budgets=[steps // 4, steps // 2, steps])
-    s["seeds"] = args.seeds or s["seeds"]
-    if args.scale == "tiny" and args.tasks != "calibrated":
-        ap.error("--scale tiny has its own two-task splits; --tasks applies to --scale gpu")
+    for key in ("seeds", "draws", "test_goals", "extraction_steps"):
+        s[key] = getattr(args, key) or s[key]
     if args.scale != "tiny":
         s["extraction"], s["downstream"] = TASK_SETS[args.tasks]
+    pixels = args.observation == "pixels"
+    policy = POLICY if pixels else STATE_POLICY
+    observation = {"obs_mode": "pixels", "image_size": 64} if pixels else {"obs_mode": "state"}
     aux_base = AUX.model_copy(update={"name": args.objective})
     depth = args.objective == "spatial_depth"  # per-patch xyz is only rendered when its objective reads it
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "episodes.jsonl").unlink(missing_ok=True)
     runs: dict[str, dict] = {}
 
-    def demos(split: str, tasks: list[str], episodes: int, depth: bool) -> DemoDataset:
+    def demos(split: str, tasks: list[str], episodes: int, depth: bool, seed_offset: int = 0) -> str:
+        """Collects a split and saves it under the work folder, where training processes load it."""
         t = time.perf_counter()
         data = collect_demos(
             DemoConfig(
                 tasks=tasks,
                 episodes_per_task=episodes,
-                obs_mode="pixels",
-                image_size=64,
                 horizon=s["horizon"],
-                workers=args.workers,
+                workers=args.workers + args.train_procs,
                 patch_xyz=depth,
                 patch_grid=4,
+                seed_offset=seed_offset,
+                **observation,
             )
         )
         print(f"[{stamp()}] demos {split}: {len(data)} frames in {time.perf_counter() - t:.1f} s", flush=True)
-        return data
+        return str(data.save(args.work / "data" / split, overwrite=True))
 
-    def fit(name: str, init: Path | None, data: DemoDataset, config: TrainConfig) -> dict:
-        torch.manual_seed(config.seed)
-        policy = build_policy(POLICY, device="auto") if init is None else load_policy(init, device="auto")
-        result = train(policy, data, config, args.work / name)
-        runs[name] = {
-            "steps_per_s": result.steps_per_s,
-            "final_loss": result.final_loss,
-            "device": result.execution.get("device"),
-        }
-        print(
-            f"[{stamp()}] trained {name}: {result.steps_per_s:.1f} steps/s, loss {result.final_loss:.4f}",
-            flush=True,
-        )
-        return {**{b: p for b, p in result.snapshots.items()}, config.steps: result.weights_path}
+    def fit_all(jobs: list[tuple], on_done) -> None:
+        """Trains `jobs` (name, init, data, config, heldout) in the training pool; `on_done` per run."""
+        futures = [
+            trainers.submit(train_job, name, policy, init, data, config.model_dump(), str(args.work), held)
+            for name, init, data, config, held in jobs
+        ]
+        for future in as_completed(futures):
+            name, paths, summary = future.result()
+            runs[name] = summary
+            print(
+                f"[{stamp()}] trained {name}: {summary['steps_per_s']:.1f} steps/s, "
+                f"loss {summary['final_loss']:.4f}"
+                + (f", held-out {summary['heldout_loss']}" if "heldout_loss" in summary else ""),
+                flush=True,
+            )
+            on_done(name, paths)
 
     pre_n, ext_n, down_n = s["episodes"]
     down_n = args.downstream_episodes or down_n
     pre = demos("pretrain", s["pretrain"], pre_n, depth=False)
-    with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool:
-        episodes = Episodes(args.out, pool)
+    ext = None if args.no_extraction else demos("extraction", s["extraction"], ext_n, depth=depth)
+    held = None
+    if ext is not None:
+        offset = DemoConfig(tasks=s["extraction"], episodes_per_task=ext_n).n_units * UNIT_SEEDS
+        held = demos("heldout", s["extraction"], HELDOUT_EPISODES, depth=depth, seed_offset=offset)
+    down = demos("downstream", s["downstream"], down_n, depth=depth)
+    with (
+        ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool,
+        ProcessPoolExecutor(args.train_procs, mp_context=get_context("spawn")) as trainers,
+    ):
+        episodes = Episodes(args.out, pool, observation)
         horizon = s["eval_horizon"]
         test = dict(tasks=s["downstream"], goals=s["test_goals"], seed_base=100_000, horizon=horizon)
         valid = dict(tasks=s["extraction"], goals=s["validation_goals"], seed_base=VALIDATION_SEED_BASE)
         valid_down = dict(valid, tasks=s["downstream"], horizon=horizon, split="validation")
         valid = dict(valid, horizon=horizon, split="validation")
-        pt = fit("pt", None, pre, train_config(s["pretrain_steps"], s["batch"], 0, None))[s["pretrain_steps"]]
-        del pre
-        ext = None if args.no_extraction else demos("extraction", s["extraction"], ext_n, depth=depth)
-        down = demos("downstream", s["downstream"], down_n, depth=depth)
-        episodes.submit(pt, **test, arm="pt", draw=-1, seed=0, budget=0)
-        starts: dict[tuple[str, int], Path] = {}
-        for draw in (
-            [] if ext is None else s["draws"]
-        ):  # θ_ft^d and θ_ao^d: same θ_pt, same seed and batch order
-            for arm, aux in (("ft", None), ("ao", aux_base)):
-                path = fit(
-                    f"{arm}{draw}", pt, ext, train_config(s["extraction_steps"], s["batch"], draw, aux)
-                )
-                starts[arm, draw] = path[s["extraction_steps"]]
-                episodes.submit(starts[arm, draw], **valid, arm=arm, draw=draw, seed=0, budget=0)
+        starts: dict[str, str] = {}
+        pt_steps = s["pretrain_steps"]
+        fit_all(
+            [("pt", None, pre, train_config(pt_steps, s["batch"], 0, None), None)],
+            lambda name, paths: starts.update(pt=paths[pt_steps]),
+        )
+        episodes.submit(starts["pt"], **test, arm="pt", draw=-1, seed=0, budget=0)
+
+        # θ_ft^d and θ_ao^d: the same θ_pt, seed and batch order; snapshots at half for (a)
+        ext_steps = s["extraction_steps"]
+        ao = aux_base.model_copy(update={"weight": args.extraction_aux_weight})
+        extraction = [
+            (f"{arm}{draw}", starts["pt"], ext, config, held)
+            for draw in ([] if ext is None else s["draws"])
+            for arm, aux in (("ft", None), ("ao", ao))
+            for config in [
+                train_config(ext_steps, s["batch"], draw, aux, [ext_steps // 2], args.extraction_lr)
+            ]
+        ]
+
+        def extracted(name: str, paths: dict) -> None:
+            starts[name] = paths[ext_steps]
+            episodes.submit(paths[ext_steps], **valid, arm=name[:2], draw=int(name[2:]), seed=0, budget=0)
+
+        fit_all(extraction, extracted)
         aux_arms = [
             ("aux" if len(args.aux_weights) == 1 else f"aux@{w:g}", aux_base.model_copy(update={"weight": w}))
             for w in args.aux_weights
         ]
-        jobs = [("sft", -1, pt, None)] + [(arm, -1, pt, aux) for arm, aux in aux_arms]
-        jobs += [(f"sft_from_{arm}", draw, starts[arm, draw], None) for arm, draw in starts]
-        for arm, draw, init, aux in jobs:
+        inits = [("sft", -1, starts["pt"], None)] + [(arm, -1, starts["pt"], aux) for arm, aux in aux_arms]
+        inits += [
+            (f"sft_from_{name[:2]}", int(name[2:]), path, None)
+            for name, path in starts.items()
+            if name != "pt"
+        ]
+        for arm, draw, init, _ in inits:
             if arm.startswith("sft_from"):
                 episodes.submit(init, **test, arm=arm, draw=draw, seed=0, budget=0)
+        labels = {}
+        downstream = []
+        for arm, draw, init, aux in inits:
             for seed in s["seeds"]:
+                name = f"{arm}-d{draw}-s{seed}"
+                labels[name] = dict(arm=arm, draw=draw, seed=seed)
                 config = train_config(s["downstream_steps"], s["batch"], seed, aux, s["budgets"][:-1])
-                for budget, path in fit(f"{arm}-d{draw}-s{seed}", init, down, config).items():
-                    episodes.submit(path, **test, arm=arm, draw=draw, seed=seed, budget=budget)
-                    if len(aux_arms) > 1 and draw == -1:  # the aux weight is chosen on validation goals
-                        episodes.submit(path, **valid_down, arm=arm, draw=draw, seed=seed, budget=budget)
+                downstream.append((name, init, down, config, None))
+
+        def finetuned(name: str, paths: dict) -> None:
+            label = labels[name]
+            for budget, path in paths.items():
+                episodes.submit(path, **test, **label, budget=budget)
+                if len(aux_arms) > 1 and label["draw"] == -1:  # the aux weight is chosen on validation goals
+                    episodes.submit(path, **valid_down, **label, budget=budget)
+
+        fit_all(downstream, finetuned)
         left = sum(not f.done() for f in episodes.pending)
         print(f"[{stamp()}] training done; waiting for {left} evaluations", flush=True)
         episodes.wait()
@@ -321,12 +430,16 @@ def main() -> None:
         json.dumps(
             {
                 "scale": args.scale,
+                "observation": args.observation,
                 "settings": s,
-                "policy": POLICY,
+                "policy": policy,
                 "aux": aux_base.model_dump(),
                 "tasks": args.tasks,
                 "aux_weights": args.aux_weights,
+                "extraction_aux_weight": args.extraction_aux_weight,
+                "extraction_lr": args.extraction_lr,
                 "downstream_episodes": down_n,
+                "train_procs": args.train_procs,
                 "runs": runs,
                 "wall_s": time.perf_counter() - START,
                 "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,

@@ -1,8 +1,6 @@
 """Step: a checkpoint's action loss on held-out demonstrations (the extraction runs' convergence check).
 
-The loss is the policy's own training loss (its `compute_loss`), averaged over every sample of the
-held-out dataset in a fixed order with torch seeded, so a stochastic loss (flow matching's noise and
-times) gives the same number for the same checkpoint. Recorded as a `measurement` artifact whose
+The measure is `capvector_core.held_out_loss.held_out_action_loss`. Recorded as a `measurement` artifact whose
 parents are the checkpoint and the data.
 """
 
@@ -10,11 +8,10 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from capvector_core.demos import DemoDataset
-from capvector_core.policy import load_policy
+from capvector_core.held_out_loss import held_out_action_loss
 from tasks.caching import cached_step
 from tasks.prefect_task import pipeline_task
 from tasks.workspace import Workspace, provenance, workspace_for
@@ -26,21 +23,6 @@ class HeldOutLossConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     batch_size: int = Field(256, gt=0)
     seed: int = 0
-
-
-@torch.no_grad()
-def held_out_action_loss(checkpoint_path: Any, dataset: DemoDataset, batch_size: int, seed: int) -> float:
-    """Mean of the policy's loss over every sample of `dataset` (batches in index order)."""
-    policy = load_policy(checkpoint_path, device="cpu")
-    policy.eval()
-    torch.manual_seed(seed)
-    n, make_batch = policy.make_batcher(dataset, policy.device)
-    total = 0.0
-    for start in range(0, n, batch_size):
-        index = torch.arange(start, min(n, start + batch_size))
-        terms = policy.compute_loss(make_batch(index)).terms
-        total += float(torch.stack(list(terms.values())).sum()) * len(index)
-    return total / n
 
 
 def run_held_out_loss(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
