@@ -7,7 +7,9 @@ Exact resume: every checkpoint holds the policy and aux-head weights (safetensor
 state, the batch-sampling generator and torch RNG states, and the step. The learning rate is a pure
 function of the step (linear warm-up then cosine to ``min_lr_ratio``), so it needs no state of its own.
 ``train`` resumes from the newest complete checkpoint in ``run_dir``; a run killed at any point and
-rerun ends with the same weights, bit for bit, as an uninterrupted one with the same seed.
+rerun ends with the same weights, bit for bit, as an uninterrupted one with the same seed. Only the
+same run resumes: a checkpoint records its run's origin (the dataset's content hash and a digest of the
+starting weights) beside its TrainConfig, and one from other data or another start is an error.
 
 Lost files are recomputed, never a dead end: a checkpoint whose files are missing or unreadable, or
 one past a kept snapshot that is gone, is passed over for the newest older one that is intact (a
@@ -26,6 +28,7 @@ Layout of ``run_dir``::
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -229,9 +232,10 @@ def _fsync_dir(path: Path) -> None:
 class _Run:
     """State of one training invocation (kept together so checkpointing sees all of it)."""
 
-    def __init__(self, policy, objective, optimizer, generator, config, run_dir, device):
+    def __init__(self, policy, objective, optimizer, generator, config, run_dir, device, origin):
         self.policy, self.objective, self.optimizer = policy, objective, optimizer
         self.generator, self.config, self.run_dir, self.device = generator, config, run_dir, device
+        self.origin = origin
         self.step = 0
         self.train_seconds = 0.0
 
@@ -250,6 +254,7 @@ class _Run:
             save_file(_cpu_state(self.objective), str(tmp / "aux.safetensors"))
         state = {
             "step": self.step,
+            "origin": self.origin,
             "train_seconds": self.train_seconds,
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
@@ -280,6 +285,24 @@ class _Run:
                 "use a new run_dir for a different configuration"
             )
 
+    def check_origin(self, path: Path, state: dict[str, Any]) -> None:
+        """Refuse a checkpoint of another run: other data, or other starting weights, in this run_dir."""
+        theirs = state.get("origin")
+        if theirs != self.origin:
+            differs = (
+                "it records no origin (written before origins were)"
+                if theirs is None
+                else "its "
+                + " and ".join(
+                    f"{k} ({theirs.get(k)} vs {v})" for k, v in self.origin.items() if theirs.get(k) != v
+                )
+                + " differ"
+            )
+            raise ValueError(
+                f"cannot resume from {path}: {differs}; this run_dir belongs to another run, "
+                "use a new run_dir"
+            )
+
     def read(self, path: Path) -> dict[str, Any]:
         """Every file of a checkpoint, read before anything is changed (raises if one is lost)."""
         return {
@@ -296,6 +319,7 @@ class _Run:
         if self.objective is not None:
             self.objective.load_state_dict(read["aux"], strict=True)
         state = read["state"]
+        self.check_origin(path, state)
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
@@ -340,6 +364,16 @@ class _Run:
 
 def _cpu_state(module: nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.detach().to("cpu").contiguous() for k, v in module.state_dict().items()}
+
+
+def _weights_digest(module: nn.Module) -> str:
+    """sha256 over the module's state (name, dtype, shape, bytes) in name order: its starting point."""
+    digest = hashlib.sha256()
+    for key, value in sorted(module.state_dict().items()):
+        tensor = value.detach().to("cpu").contiguous()
+        digest.update(f"{key}\0{tensor.dtype}\0{tuple(tensor.shape)}\0".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
 
 
 def _param_groups(params: list[nn.Parameter], weight_decay: float) -> list[dict]:
@@ -411,7 +445,8 @@ def train(
         params += list(objective.parameters())
     optimizer = torch.optim.AdamW(_param_groups(params, config.weight_decay), lr=config.lr)
     generator = torch.Generator().manual_seed(config.seed)
-    run = _Run(policy, objective, optimizer, generator, config, run_dir, device)
+    origin = {"data": str(getattr(dataset, "content_hash", None)), "start": _weights_digest(policy)}
+    run = _Run(policy, objective, optimizer, generator, config, run_dir, device, origin)
 
     curve_path = run_dir / "loss_curve.jsonl"
     passed_over = run.resume(snapshot_at, curve_path)

@@ -290,6 +290,8 @@ def parse_args() -> argparse.Namespace:
         ap.error("--scale tiny has its own two-task splits; --tasks applies to --scale gpu")
     if args.observation == "state_features" and args.objective != "spatial":
         ap.error("--observation state_features has no depth render: use --objective spatial")
+    if args.work.exists() and any(args.work.iterdir()):
+        ap.error(f"--work {args.work} holds an earlier run's files: pass a new folder")
     if args.workers is None:
         args.workers = max(1, (os.cpu_count() or 2) - args.train_procs - 1)
     return args

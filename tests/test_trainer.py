@@ -228,14 +228,33 @@ def test_resume_after_sigkill_is_bit_identical(tmp_path, policy_type):
     ]
 
 
+def fresh_policy() -> L1ChunkPolicy:
+    torch.manual_seed(0)
+    return L1ChunkPolicy(L1ChunkConfig(**TINY))
+
+
 def test_resume_refuses_a_different_config(tmp_path):
-    policy = L1ChunkPolicy(L1ChunkConfig(**TINY))
-    train(policy, make_dataset(), quick(steps=10, checkpoint_every=5), tmp_path)
+    train(fresh_policy(), make_dataset(), quick(steps=10, checkpoint_every=5), tmp_path)
     cfg = quick(steps=10, checkpoint_every=5, log_every=2)
-    again = train(policy, make_dataset(), cfg, tmp_path)
+    again = train(fresh_policy(), make_dataset(), cfg, tmp_path)
     assert again.resumed_from_step == 10  # finished run: nothing left to do, log_every may differ
     with pytest.raises(ValueError, match=r"differs in \['lr'\]"):
-        train(policy, make_dataset(), quick(steps=10, lr=1e-2), tmp_path)
+        train(fresh_policy(), make_dataset(), quick(steps=10, lr=1e-2), tmp_path)
+
+
+def test_resume_refuses_another_runs_checkpoints(tmp_path):
+    """A run_dir reused for other data or another start is an error, not someone else's weights."""
+    config = quick(steps=10, checkpoint_every=5)
+    first = train(fresh_policy(), make_dataset(), config, tmp_path)
+    weights = (tmp_path / "policy.safetensors").read_bytes()
+    with pytest.raises(ValueError, match=r"its data \(.*\) differ; this run_dir belongs to another run"):
+        train(fresh_policy(), make_dataset(seed=1), config, tmp_path)
+    trained = fresh_policy()
+    train(trained, make_dataset(), quick(steps=6, checkpoint_every=3), tmp_path / "other")
+    with pytest.raises(ValueError, match=r"its start \(.*\) differ"):
+        train(trained, make_dataset(), config, tmp_path)  # starts from trained weights: another run
+    assert (tmp_path / "policy.safetensors").read_bytes() == weights  # nothing stored was touched
+    assert train(fresh_policy(), make_dataset(), config, tmp_path).resumed_from_step == first.steps
 
 
 def test_snapshots_are_the_weights_at_their_step_and_bad_ones_refused(tmp_path):
