@@ -1,8 +1,9 @@
-"""The pixels gate runs' report from their committed episode records (docs/data/pixels_gpu_*.jsonl.gz).
+"""The GPU gate runs' report from their committed episode records (docs/data/pixels_gpu_*.jsonl.gz).
 
-`scripts/pixels_gate_gpu.py` ran three times on a lent H200 machine; its per-episode records and run
-summaries were copied into docs/data/. This script recomputes every number of docs/study_pixels_gpu.md
-from them with the study's own statistics (paired hierarchical bootstrap, MDD) and draws the figure.
+`scripts/pixels_gate_gpu.py` ran on lent H200 machines (and once on a workstation); its per-episode
+records and run summaries were copied into docs/data/. This script recomputes every number of
+docs/study_pixels_gpu.md from them with the study's own statistics (paired hierarchical bootstrap,
+MDD) and draws the figure.
 
     python scripts/pixels_gate_report.py
 """
@@ -30,6 +31,11 @@ RUNS = {
     "hard_depth": "run 5: run 4's tasks and design with `spatial_depth`",
     "hard_spatial_cpu": "run 6: run 4 replicated with fresh seeds 3-8 and its chosen weight 0.5, "
     "on a 2-core workstation (no extraction)",
+    "state_large": "run 7: the control testbed (state through random features, the `spatial` objective) "
+    "with the larger policy, 6000-step extraction, 3 draws × 4 seeds, weights 0.5 / 2 chosen on "
+    "validation goals",
+    "state_large_hard": "run 8: run 7 on `study-control-hard`'s tasks (cut short by the session's "
+    "device time)",
 }
 TITLES = {
     "gate": "run 1: 5 demos/task",
@@ -38,6 +44,8 @@ TITLES = {
     "hard_spatial": "run 4: hard tasks, xyz objective",
     "hard_depth": "run 5: hard tasks, depth objective",
     "hard_spatial_cpu": "run 6: run 4, seeds 3-8 (CPU)",
+    "state_large": "run 7: state features, larger policy",
+    "state_large_hard": "run 8: run 7, hard tasks",
 }
 COLOURS = {"sft": "#4c72b0", "aux": "#dd8452", "sft_from_ao": "#55a868", "sft_from_ft": "#8c8c8c"}
 
@@ -65,6 +73,25 @@ def chosen_weight(episodes: pd.DataFrame, budgets: list[int]) -> str:
     return str(means.idxmax())
 
 
+def complete_draws(test: pd.DataFrame, arms: list[str]) -> pd.DataFrame:
+    """`test` without the draws some (arm, seed, budget) run of `arms` lacks: a run cut short by its time
+    limit loses its last-queued evaluations, which depend on queue order, not on their outcome."""
+    runs = test[test["arm"].isin(arms)].groupby(["draw", "arm", "seed", "budget"]).size()
+    per_draw = runs.groupby(level="draw").size()
+    whole = per_draw[per_draw == per_draw.max()].index
+    return test[~test["arm"].isin(arms) | test["draw"].isin(whole)]
+
+
+def convergence(runs: dict) -> str | None:
+    """Precondition (a): each extraction run's held-out action loss change over its second half."""
+    changes = []
+    for name, run in sorted(runs["runs"].items()):
+        losses = list(run.get("heldout_loss", {}).values())
+        if len(losses) == 2:
+            changes.append(f"θ_{name[:2]}^{name[2:]} {100 * (losses[1] - losses[0]) / losses[0]:+.1f} %")
+    return ", ".join(changes) or None
+
+
 def curve_rows(test: pd.DataFrame, arms: list[str], budgets: list[int]) -> list[str]:
     lines = ["| arm | " + " | ".join(str(b) for b in budgets) + " |", "|---" * (len(budgets) + 1) + "|"]
     for arm in arms:
@@ -89,7 +116,13 @@ def main(docs: Path = DOCS, out: Path = DOCS) -> Path:
             lines += [f"Chosen on D_down validation goals (mean over budgets): **{aux}**.", ""]
         rows = [("auxiliary SFT − SFT", aux, "sft")]
         if "sft_from_ao" in set(test["arm"]):
-            rows.append(("SFT from θ_ao − SFT from θ_ft (c)", "sft_from_ao", "sft_from_ft"))
+            complete = complete_draws(test, ["sft_from_ao", "sft_from_ft"])
+            label = "SFT from θ_ao − SFT from θ_ft (c)"
+            if len(complete) < len(test):
+                kept = sorted(set(complete[complete["arm"] == "sft_from_ao"]["draw"]))
+                label += f", complete draws {', '.join(map(str, kept))}"
+            test = complete
+            rows.append((label, "sft_from_ao", "sft_from_ft"))
         lines += [
             "| comparison | endpoint (mean over budgets) | " + " | ".join(f"@ {b}" for b in budgets) + " |"
         ]
@@ -103,11 +136,19 @@ def main(docs: Path = DOCS, out: Path = DOCS) -> Path:
             ext = episodes[episodes["arm"].isin(["ao", "ft"])]
             b = cell(paired_difference(ext, "ao", "ft", 0))
             lines.append(f"| θ_ao − θ_ft on D_ext validation goals (b) | {b} |")
+        if convergence(runs):
+            lines += [
+                "",
+                "(a) held-out action loss change over the extraction runs' second half: "
+                f"{convergence(runs)}.",
+            ]
         arms = ["sft", *sorted(a for a in set(test["arm"]) if a != "sft")]
         lines += ["", "Success on test goals (mean % [95 % CI]) by downstream steps:", ""]
         lines += curve_rows(test, arms, budgets)
         pt = episodes[episodes["arm"] == "pt"]["success"].mean() * 100
-        where = f"one {runs['cuda']} with 14 CPU rollout workers" if runs["cuda"] else "2 CPU cores"
+        procs = runs.get("train_procs", 1)
+        trainers = f", {procs} training processes sharing the GPU and 9" if procs > 1 else " with 14"
+        where = f"one {runs['cuda']}{trainers} CPU rollout workers" if runs["cuda"] else "2 CPU cores"
         wall = f"Wall {runs['wall_s'] / 60:.1f} min on {where}."
         lines += ["", f"θ_pt before downstream training: {pt:.1f} %. {wall}", ""]
         sections += lines
@@ -141,28 +182,32 @@ def draw(data: dict, path: Path) -> None:
         ax.axis("off")
     for ax in axes[:, 0]:
         ax.set_ylabel("test success (%)")
-    fig.suptitle("Pixels (64×64 corner2 + proprioception): auxiliary SFT against SFT", fontsize=10)
+    fig.suptitle(
+        "GPU gate runs (1-6 pixels, 7-8 state through random features): auxiliary SFT against SFT",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-TEMPLATE = """# The pixels testbed: no positive control (six runs, all reported)
+TEMPLATE = """# The GPU gate runs: no positive control (eight runs, all reported)
 
 Issue 26 asks for a testbed where the auxiliary objective helps before asking whether γ carries that
 help. The state testbed with random-feature observations gave +4.1 points (docs/study_control_10000.md).
 The faithful analogue of Spatial Forcing is pixels with the `spatial_depth` objective (each vision
 token regresses its own image patch's back-projected world xyz from MuJoCo's depth render). It is
 GPU-sized, so it ran when a GPU machine was lent (one NVIDIA H200 with 16 CPU cores, 15 minutes of
-device time per session, two sessions). The machine has no Prefect or DuckDB, so the recipe ran through
+device time per session, three sessions). The machine has no Prefect or DuckDB, so the recipe ran through
 `scripts/pixels_gate_gpu.py`, which calls `capvector_core` directly: the same demos, policies, trainer,
 objectives and evaluation as the flows, but without the catalogue or cache. Training ran on the GPU.
 Rollouts ran in a pool of 14 CPU processes with EGL rendering, started as each checkpoint was written.
 Every episode came back as a record (`docs/data/pixels_gpu_*.jsonl.gz`). This page is computed from those
 records by `scripts/pixels_gate_report.py`.
 
-**Answer: on pixels the auxiliary objective helps by a few points at most, never by 10 with an interval
-above 0, so CapVector is untestable here too.** Auxiliary SFT − SFT at the primary endpoint (mean
+**Answer: on pixels, and on the state testbed with the larger policy (runs 7-8), the auxiliary
+objective helps by a few points at most, never by 10 with an interval above 0, so CapVector is
+untestable here too.** Auxiliary SFT − SFT at the primary endpoint (mean
 success over the budgets, paired by seed, task and goal, hierarchical bootstrap 95 % CI):
 
 - run 1 (the gate phase, 5 demos per task, `spatial_depth`): **{gate}**: the objective *hurts* early
@@ -171,7 +216,10 @@ success over the budgets, paired by seed, task and goal, hierarchical bootstrap 
 - run 3 (2 demos per task, 1000 steps, 4 seeds): **{long}**;
 - run 4 (the six hardest calibrated tasks downstream, the 9-d xyz `spatial` objective): **{hard_spatial}**;
 - run 5 (run 4's tasks with `spatial_depth`): **{hard_depth}**;
-- run 6 (run 4 replicated with 6 fresh seeds on a workstation's CPUs): **{hard_spatial_cpu}**.
+- run 6 (run 4 replicated with 6 fresh seeds on a workstation's CPUs): **{hard_spatial_cpu}**;
+- run 7 (not pixels: the control testbed, state through random features with the `spatial`
+  objective, and the larger policy, d_model 128 × 4 layers): **{state_large}**;
+- run 8 (run 7 on `study-control-hard`'s tasks): **{state_large_hard}**.
 
 Run 4 came closest to the target (+9.7 at 100 steps, +12.5 at 200), but with 3 seeds its interval is
 ±40 points. Run 6 was declared after reading run 4's results as its replication: the same design and
@@ -180,32 +228,54 @@ with an interval that includes 0 (MDD 7.9). At the final budget it is +7.5 [+0.1
 endpoint. This is the state testbed's +4 again, not a positive control. Run 4 was the better of the
 two runs made in that batch, so some of its size was the luck of the pick.
 
-None of the six reaches the 10-point target with its interval above 0. The gate's other
-preconditions, where measured (runs 1, 4 and 5), were not shown either. (b) θ_ao against θ_ft on
+**Runs 7 and 8: the larger policy on the state testbed, with longer extraction and more seeds.**
+They test the lever docs/positive_control.md named as closest to passing the gate: the larger policy
+(where (b) and (c) had each held in some 2-core design) with converged extraction runs and more test
+goals. Extraction ran 6000 steps (three times the 2-core studies' longest), 3 draws, 4 downstream
+seeds, 20 test goals per task, θ_ao's weight 2 (the larger-policy studies' validation choice). The
+script trained six runs at once on the GPU (`--train-procs 6`, about 60 steps/s each). Neither run
+gives a positive control. Auxiliary SFT − SFT is +2.6 on the calibrated tasks, where SFT reaches 92 %
+by 200 steps, and +4.3 [−0.3, +9.6] on the hard tasks. That is the same few points as every state
+design before. The hard tasks' +7.1 [+3.2, +10.9] at the final budget is a secondary endpoint. (a) still
+fails: held-out loss fell 15-28 % over the second half even at 6000 steps. (b) fails in both runs
+(−2.8 and +1.1): θ_ao and θ_ft are at 88-98 % on the extraction tasks' validation goals, with no room
+between them. (c) holds on the calibrated tasks, +4.5 [+1.9, +7.3] (MDD 3.6), as it did in the
+2-core larger-policy studies. Run 8 was stopped by the session's device-time limit, with 136
+evaluations still queued. It lost SFT from θ_ao for draw 0 seeds 1-3, the last runs queued, so its
+(c) uses the two complete draws (df 1, uninformative). Its `runs.json` was written on the workstation
+from the command's settings and log, because the script writes that file only at its end. A first
+attempt at run 8 on the same warm machine reused run 7's work folder, and the trainer resumed run 7's
+finished checkpoints as if they were run 8's. Its records were discarded unread. The trainer now
+refuses a checkpoint from other data or another start (see `capvector_core/trainer.py`), and the
+script refuses a non-empty `--work`.
+
+None of the eight reaches the 10-point target with its interval above 0. The gate's other
+preconditions were never both shown: runs 7 and 8 are above, and in the pixels runs that measured
+them (1, 4 and 5) neither was. (b) θ_ao against θ_ft on
 D_ext validation goals: +5.8 in run 1 (two draws, uninformative), −1.7 [−7.2, +3.9] in run 4 and
 +0.0 [−10.4, +10.4] in run 5. In runs 4 and 5 the extraction tasks are at 82-91 % for both, near
 the ceiling. (c) SFT from θ_ao − SFT from θ_ft: +2.7 (MDD ~30), +4.0 [−7.5, +17.3] and +4.1 [−0.3,
-+8.3]. So the gate would stop, as it does on the state testbed.
++8.3]. So the gate would stop in every run.
 
-**Setup.** Runs 1-3 use the control studies' splits (docs/calibration.md): θ_pt is trained on 8
-pretraining tasks; D_ext has 6 tasks and D_down 7. Their difficulty was calibrated on state
-observations, not on pixels: SFT reaches 94 % at 400 steps here, so the tasks are easier in this mode
-than in the calibration's. Runs 4-6 use `study-control-hard`'s splits (its preset states the rule):
-the six calibrated tasks with the lowest SFT mean (dial-turn, door-unlock, door-lock, door-close,
-plate-slide-back, window-close) downstream and the other nine for extraction. There, SFT reaches 47-52 %
-at 400 steps. Observations are 64×64 corner2 images plus proprioception. The policy is
+**Setup of the pixels runs (1-6).** Runs 1-3 use the control studies' splits (docs/calibration.md):
+θ_pt is trained on 8 pretraining tasks; D_ext has 6 tasks and D_down 7. Their difficulty was calibrated
+on state observations, not on pixels: SFT reaches 94 % at 400 steps here, so the tasks are easier in
+this mode than in the calibration's. Runs 4-6 use `study-control-hard`'s splits (its preset states the
+rule): the six calibrated tasks with the lowest SFT mean (dial-turn, door-unlock, door-lock,
+door-close, plate-slide-back, window-close) downstream and the other nine for extraction. There, SFT
+reaches 47-52 % at 400 steps. Observations are 64×64 corner2 images plus proprioception. The policy is
 `study-pixels`' d_model 128 × 4 layers with a 4×4 token grid. The design is the script's, declared in
 `scripts/pixels_gate_gpu.py` before any rollout, and differs from the `study-pixels` preset: other
 splits, 2 draws rather than 3, 20 test goals per task rather than 84, 1000 extraction steps rather than
-600, budgets 100/200/400, and no lr selection. Settings: θ_pt 2000 steps on 10 demos
-per task; θ_ft and θ_ao 1000 steps on 10 demos per task with draws 0 and 1 (same seed and batch order
-within a draw; θ_ao's weight 0.5); downstream runs at batch 64 and lr 1e-3 over 3 seeds (run 3: 4
-seeds, run 6: 6). Test goals are 20 per task (seeds 100000+), validation goals 10 per task (seeds
-50000+), horizon 150, 4 actions executed per call. The auxiliary weight was 0.5 (the preset's) in run 1.
-In runs 2, 4 and 5 it was chosen on D_down validation goals (among 0.1, 0.5 and 2, then 0.5 and 2)
-before the test rows were read. Runs 3 and 6 used their predecessor's choice. Run 6 retrained θ_pt
-on the CPU (same seed, other numerics), and its θ_pt is a different model: 9.2 % on the test goals
-against run 4's 0.0 %. So run 6 replicates run 4's design, not its starting point.
+600, budgets 100/200/400, and no lr selection. Settings: θ_pt 2000 steps on 10 demos per task; θ_ft and
+θ_ao 1000 steps on 10 demos per task with draws 0 and 1 (same seed and batch order within a draw;
+θ_ao's weight 0.5); downstream runs at batch 64 and lr 1e-3 over 3 seeds (run 3: 4 seeds, run 6: 6).
+Test goals are 20 per task (seeds 100000+), validation goals 10 per task (seeds 50000+), horizon 150, 4
+actions executed per call. The auxiliary weight was 0.5 (the preset's) in run 1. In runs 2, 4 and 5 it
+was chosen on D_down validation goals (among 0.1, 0.5 and 2, then 0.5 and 2) before the test rows were
+read. Runs 3 and 6 used their predecessor's choice. Run 6 retrained θ_pt on the CPU (same seed, other
+numerics), and its θ_pt is a different model: 9.2 % on the test goals against run 4's 0.0 %. So run 6
+replicates run 4's design, not its starting point.
 
 **What was tried, in order, and why.** Run 1 is the gate phase of the script's declared design. It showed SFT
 near the ceiling after 400 steps. Scarcer data (2 demos per task) is the textbook setting where a
@@ -239,7 +309,10 @@ into `.gl/`, carry both, and run `pip install --no-index --no-deps --target /tmp
 $OUT/gate` (add `--no-extraction --downstream-episodes 2 --aux-weights 0.1 0.5 2.0` for run 2,
 `--downstream-episodes 2 --aux-weights 2.0 --downstream-steps 1000 --seeds 0 1 2 3
 --no-extraction` for run 3, `--tasks hard --objective spatial --aux-weights 0.5 2` for run 4,
-`--tasks hard --objective spatial_depth --aux-weights 0.5 2` for run 5). Run 6 needs no GPU:
+`--tasks hard --objective spatial_depth --aux-weights 0.5 2` for run 5; `--observation
+state_features --objective spatial --train-procs 6 --workers 9 --aux-weights 0.5 2
+--extraction-aux-weight 2 --extraction-steps 6000 --downstream-steps 200 --draws 0 1 2 --seeds 0 1 2 3
+--test-goals 20` for run 7, adding `--tasks hard` for run 8). Run 6 needs no GPU:
 `MUJOCO_GL=egl python scripts/pixels_gate_gpu.py --out OUT --tasks hard --objective spatial
 --aux-weights 0.5 --no-extraction --seeds 3 4 5 6 7 8 --workers 1` (41 minutes on 2 cores). Copy
 `episodes.jsonl` (gzipped) and `runs.json` into `docs/data/` and run this page's script.
