@@ -126,17 +126,22 @@ def _answer_or_run(
     total: int,
     label: str,
     dry_run: bool,
-    flow_fn,
+    flow: str,
     config,
     runner_config,
     planned: Sequence[str] = (),
 ) -> Any:
     """A planned command's result: from the content cache when it answers every step (no server, no
-    flow run), else from a flow run (server up, log opened, tagged with the command and preset)."""
+    flow run, no Prefect import), else from a flow run (server up, log opened, tagged with the command
+    and preset). `flow`: the flow as `module:name`, imported only when it has to run."""
     result = _from_cache(command, resolve_home(home), plan, total, label, dry_run, planned)
     if result is None:
+        from importlib import import_module
+
         from flows.runs import run_tags
 
+        module, name = flow.split(":")
+        flow_fn = getattr(import_module(module), name)
         preflight(command, home)
         with run_tags(command.split()[0], config.name):
             result = _on_runner(flow_fn, runner_config)(config.model_dump(mode="json"), resolve_home(home))
@@ -162,7 +167,7 @@ def run(
     if _new_home(home, dry_run):
         _boot_server()
     from flows.config import load_config
-    from flows.pipeline import pipeline, pipeline_plan, run_pipeline
+    from flows.recipe import pipeline_plan, run_pipeline
 
     config = load_config(preset, overrides)
     home = resolve_home(home)
@@ -171,7 +176,16 @@ def run(
     label = f"pipeline {config.name}"
     planned = [p.step for p in pipeline_plan(config)]
     ids = _answer_or_run(
-        command, home, plan, len(planned), label, dry_run, pipeline, config, runner_config, planned
+        command,
+        home,
+        plan,
+        len(planned),
+        label,
+        dry_run,
+        "flows.pipeline:pipeline",
+        config,
+        runner_config,
+        planned,
     )
     if as_json:
         print_json(ids)
@@ -264,7 +278,7 @@ def study(
         _boot_server()
     from functools import partial
 
-    from flows.study import plan_study, study_flow, study_plan
+    from flows.study import plan_study, study_plan
     from flows.study_config import load_study
     from flows.study_figures import default_report_path, write_study_report
 
@@ -273,7 +287,16 @@ def study(
     plan = partial(plan_study, config)
     planned = [p.step for p in study_plan(config)]
     result = _answer_or_run(
-        command, home, plan, len(planned), label, dry_run, study_flow, config, runner_config, planned
+        command,
+        home,
+        plan,
+        len(planned),
+        label,
+        dry_run,
+        "flows.study:study_flow",
+        config,
+        runner_config,
+        planned,
     )
     ws = workspace(home)
     written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
@@ -300,14 +323,15 @@ def calibrate(
         _boot_server()
     from functools import partial
 
-    from flows.calibrate import calibrate_flow, calibration_steps, plan_calibration
+    from flows.calibrate import calibration_steps, plan_calibration
     from flows.calibrate_config import load_calibration
 
     config = load_calibration(preset, overrides)
     command, label = f"calibrate --preset {preset}", f"calibrate {config.name}"
     plan = partial(plan_calibration, config)
     total = calibration_steps(config)
-    result = _answer_or_run(command, home, plan, total, label, dry_run, calibrate_flow, config, runner_config)
+    flow = "flows.calibrate:calibrate_flow"
+    result = _answer_or_run(command, home, plan, total, label, dry_run, flow, config, runner_config)
     if as_json:
         print_json({k: v for k, v in result.items() if k != "markdown"})
         return

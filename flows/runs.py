@@ -6,9 +6,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from prefect.artifacts import create_markdown_artifact
-from prefect.runtime import flow_run
-
 from artifacts.records import RunRecord, utcnow
 from tasks.prefect_task import artifact_key
 from tasks.workspace import Workspace
@@ -17,6 +14,8 @@ from tasks.workspace import Workspace
 @contextmanager
 def recorded_run(workspace: Workspace, flow_name: str, parameters: dict[str, Any]) -> Iterator[None]:
     """Record the flow run as RUNNING, then COMPLETED or FAILED, whatever happens in between."""
+    from prefect.runtime import flow_run  # Prefect loads only where a flow runs
+
     run = RunRecord(
         flow_run_id=str(flow_run.id or f"local-{utcnow().isoformat()}"),
         flow_name=flow_name,
@@ -34,6 +33,8 @@ def recorded_run(workspace: Workspace, flow_name: str, parameters: dict[str, Any
 
 def run_name() -> str:
     """`<flow> <preset> <short id>` for the Prefect UI (not a generated "sandy-tanuki")."""
+    from prefect.runtime import flow_run
+
     config = flow_run.parameters.get("config") or {}
     preset = config.get("name") if isinstance(config, dict) else None
     return " ".join(part for part in (flow_run.flow_name, preset, str(flow_run.id or "")[:8]) if part)
@@ -59,4 +60,6 @@ def untagged_steps() -> Any:
 
 def publish_markdown(key: str, markdown: str, description: str) -> None:
     """A Markdown artifact in the Prefect UI (a no-op cost on the embedded API)."""
+    from prefect.artifacts import create_markdown_artifact
+
     create_markdown_artifact(markdown=markdown, key=artifact_key(key), description=description)

@@ -19,16 +19,14 @@ from concurrent.futures import CancelledError
 from dataclasses import dataclass
 from typing import Any
 
-from prefect.futures import PrefectFuture
-
 from flows.runners import placement
 from flows.runs import untagged_steps
 from tasks.progress import emit
 
 
 def resolve(value: Any) -> Any:
-    """An artifact id, from a future (waiting for it) or as it is."""
-    return value.result() if isinstance(value, PrefectFuture) else value
+    """An artifact id, from a future (waiting for it) or as it is (no Prefect import to tell which)."""
+    return value.result() if callable(getattr(value, "result", None)) else value
 
 
 class StepRunner:
@@ -60,7 +58,7 @@ class StepRunner:
         future.add_done_callback(lambda f: self._on_done(step, f))
         return future
 
-    def _on_done(self, step: str, future: PrefectFuture) -> None:
+    def _on_done(self, step: str, future: Any) -> None:
         outcome, error = _outcome(future)
         if error is not None:
             record_failure(step, error)  # before the progress line: the flow may be failing already
@@ -139,7 +137,7 @@ OUTCOME_WAIT_S = 30.0
 NOT_RUN = "not run (a step it needs failed)"
 
 
-def _outcome(future: PrefectFuture) -> tuple[str, BaseException | None]:
+def _outcome(future: Any) -> tuple[str, BaseException | None]:
     """How a finished step ended, and the step's own error if it failed. Never raises: it runs as a
     done-callback, where an exception would be printed as a traceback; the CLI reports the failure
     itself, in one line. A step that never ran because a step it needs failed has no error of its own

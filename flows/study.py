@@ -28,7 +28,8 @@ from typing import Any
 from prefect import flow
 
 from flows.config import ARMS
-from flows.pipeline import step_runner, submit_arm
+from flows.pipeline import step_runner
+from flows.recipe import submit_arm
 from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import PlannedStep, PlanRecorder, StepRunner, record_plan, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig

@@ -11,7 +11,8 @@ from typing import Any
 from prefect import flow
 
 from flows.config import ARMS, PipelineConfig
-from flows.pipeline import step_runner, submit_arm, submit_vector_stage
+from flows.pipeline import step_runner
+from flows.recipe import submit_arm, submit_vector_stage
 from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, record_plan, resolve
 from tasks.evaluation import evaluate_task

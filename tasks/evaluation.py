@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from prefect.artifacts import create_markdown_artifact, create_table_artifact
-
 from artifacts.scores import read_scores
 from capvector_core.evaluation import EvalConfig, EvalResult, evaluate
 from tasks.caching import cached_step
@@ -60,6 +58,8 @@ def evaluate_checkpoint(
             )
             for name, path in sorted(result.videos.items())
         }
+    from prefect.artifacts import create_markdown_artifact, create_table_artifact  # only when it ran
+
     (scores,) = read_scores(workspace.api, evaluations=[record.id])  # as every other reader sees them
     create_table_artifact(  # keyed by the step, so the UI shows an arm's (draw's, seed's) history
         table=[{"task": t, "success_rate": r} for t, r in sorted(scores.success_rates.items())],

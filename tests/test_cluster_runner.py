@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from conftest import REPO, run_cli
 
-from flows.pipeline import pipeline_steps
+from flows.recipe import pipeline_steps
 from flows.runners import RunnerConfig, runner_config
 
 TESTS = REPO / "tests"

@@ -5,7 +5,7 @@ properties of the plan; tests/test_study_flow.py checks that a real run announce
 from __future__ import annotations
 
 from flows.config import load_config
-from flows.pipeline import pipeline_plan
+from flows.recipe import pipeline_plan
 from flows.study import study_plan
 from flows.study_config import load_study
 
