@@ -11,13 +11,15 @@ from __future__ import annotations
 import statistics
 from collections.abc import Iterable
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import pandas as pd
 from pydantic import BaseModel, ConfigDict, computed_field
 
 from artifacts.api import ArtifactsAPI
 from artifacts.catalogue import EVALUATION_KIND, load_doc, rows_for
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 SCORES_SELECT = """
 SELECT evaluation_id, checkpoint_id, fingerprint, evaluated_at, task, success_rate, n_episodes
@@ -94,6 +96,8 @@ def read_episodes(api: ArtifactsAPI, evaluations: Iterable[str]) -> pd.DataFrame
 
     From the catalogue, like `read_scores`; an evaluation whose rows are not indexed yet is derived from
     its document by the same `rows_for`."""
+    import pandas as pd  # a step that reads episodes needs it; a warm run's imports do not
+
     evaluations = list(dict.fromkeys(evaluations))
     frame = api.query(EPISODES_SELECT, {"evaluations": evaluations})
     missing = set(evaluations) - set(frame["evaluation_id"])
