@@ -1,4 +1,5 @@
-"""The `calibrate` flow: the study's tasks and extraction budget, measured before the study is declared.
+"""A calibration's plan: the study's tasks and extraction budget, measured before the study is declared
+(the `calibrate` flow, flows.calibrate_flow, runs it).
 
     demos D_pt -> θ_pt (the study's: same settings, same cache keys)
     -> demos of every candidate -> per pilot seed, SFT from θ_pt on all candidates, kept at each budget
@@ -21,11 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from prefect import flow
-
 from flows.calibrate_config import CalibrateConfig
-from flows.pipeline import step_runner
-from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import StepRunner, resolve
 from tasks.calibration import (
     CalibrationStepConfig,
@@ -138,17 +135,3 @@ def plan_calibration(cfg: CalibrateConfig, steps: StepRunner) -> dict[str, Any]:
         "preset_lines": preset_lines(doc),
         "markdown": calibration_markdown(doc),
     }
-
-
-@flow(
-    name="calibrate", flow_run_name=run_name, log_prints=True, task_runner=step_runner(), persist_result=False
-)
-def calibrate_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
-    """Run (or resume from cache) a calibration; returns plan_calibration's result."""
-    cfg = CalibrateConfig.model_validate(config)
-    workspace = workspace_for(home)
-    steps = StepRunner(home, calibration_steps(cfg), f"calibrate {cfg.name}")
-    with recorded_run(workspace, "calibrate", {"config": config, "home": home}):
-        result = plan_calibration(cfg, steps)
-        publish_markdown(f"{cfg.name}-calibration", result["markdown"], f"capvector calibrate {cfg.name}")
-    return result

@@ -293,7 +293,7 @@ def study(
         len(planned),
         label,
         dry_run,
-        "flows.study:study_flow",
+        "flows.study_flow:study_flow",
         config,
         runner_config,
         planned,
@@ -330,7 +330,7 @@ def calibrate(
     command, label = f"calibrate --preset {preset}", f"calibrate {config.name}"
     plan = partial(plan_calibration, config)
     total = calibration_steps(config)
-    flow = "flows.calibrate:calibrate_flow"
+    flow = "flows.calibrate_flow:calibrate_flow"
     result = _answer_or_run(command, home, plan, total, label, dry_run, flow, config, runner_config)
     if as_json:
         print_json({k: v for k, v in result.items() if k != "markdown"})

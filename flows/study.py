@@ -1,4 +1,5 @@
-"""The `study` flow: a whole experiment on CapVector, from demonstrations to the analysed report.
+"""A study's plan: a whole experiment on CapVector, from demonstrations to the analysed report (the
+`study` flow, flows.study_flow, runs it; without Prefect here, a study the cache answers never loads it).
 
     demos -> θ_pt
     -> extraction lr chosen for θ_ft on D_ext validation goals               (selection artifact)
@@ -25,12 +26,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from prefect import flow
-
 from flows.config import ARMS
-from flows.pipeline import step_runner
 from flows.recipe import submit_arm
-from flows.runs import publish_markdown, recorded_run, run_name
 from flows.steps import PlannedStep, PlanRecorder, StepRunner, record_plan, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from flows.study_markdown import load_study_report, study_markdown
@@ -464,18 +461,6 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
             "lambda_scale": list(s.lambda_scales),
         },
     }
-
-
-@flow(name="study", flow_run_name=run_name, log_prints=True, task_runner=step_runner(), persist_result=False)
-def study_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
-    """Run (or resume from cache) a study; returns the report's id and the selections' ids."""
-    cfg = StudyConfig.model_validate(config)
-    workspace = workspace_for(home)
-    steps = StepRunner(home, study_steps(cfg), f"study {cfg.name}")
-    with recorded_run(workspace, "study", {"config": config, "home": home}):
-        result = plan_study(cfg, steps)
-        publish_markdown(f"{cfg.name}-study", result["markdown"], f"capvector study {cfg.name}")
-    return result
 
 
 def plan_study(cfg: StudyConfig, steps: StepRunner) -> dict[str, Any]:

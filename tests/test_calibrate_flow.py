@@ -17,8 +17,9 @@ from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
 from artifacts.api import ArtifactsAPI
 from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
-from flows.calibrate import calibrate_flow, calibration_steps, plan_calibration
+from flows.calibrate import calibration_steps, plan_calibration
 from flows.calibrate_config import load_calibration
+from flows.calibrate_flow import calibrate_flow
 from flows.config import load_config
 from flows.steps import CacheProbe
 from flows.study_config import load_study

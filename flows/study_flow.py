@@ -1,0 +1,29 @@
+"""The `study` flow: runs a study's plan (flows.study) on the task runner, recorded as a run.
+
+Kept apart from the plan so that a study the content cache answers whole never imports Prefect.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from prefect import flow
+
+from flows.pipeline import step_runner
+from flows.runs import publish_markdown, recorded_run, run_name
+from flows.steps import StepRunner
+from flows.study import plan_study, study_steps
+from flows.study_config import StudyConfig
+from tasks.workspace import workspace_for
+
+
+@flow(name="study", flow_run_name=run_name, log_prints=True, task_runner=step_runner(), persist_result=False)
+def study_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
+    """Run (or resume from cache) a study; returns the report's id and the selections' ids."""
+    cfg = StudyConfig.model_validate(config)
+    workspace = workspace_for(home)
+    steps = StepRunner(home, study_steps(cfg), f"study {cfg.name}")
+    with recorded_run(workspace, "study", {"config": config, "home": home}):
+        result = plan_study(cfg, steps)
+        publish_markdown(f"{cfg.name}-study", result["markdown"], f"capvector study {cfg.name}")
+    return result
