@@ -67,7 +67,9 @@ def test_dense_and_lora_checkpoints_are_evaluated_as_stored(trained):
 
 def test_evaluation_record_names_the_form_it_ran(trained, monkeypatch):
     workspace, _, ids = trained
-    monkeypatch.setattr(evaluation, "create_table_artifact", lambda **_: None)  # no Prefect API needed
+    import prefect.artifacts  # the step imports it when it has run: patched where it is read
+
+    monkeypatch.setattr(prefect.artifacts, "create_table_artifact", lambda **_: None)  # no Prefect API needed
     config = EvalConfig(tasks=["reach-v3"], episodes_per_task=1, horizon=10, execute_steps=4).model_dump()
     record = workspace.api.get(evaluation.evaluate_checkpoint(workspace, "eval", ids["lora_sp"], config))
     assert record.config["policy_form"]["form"] == "lora_sp_adapter"
