@@ -17,12 +17,15 @@
 #                      hardest calibrated tasks for extraction (room for precondition b), the nine others downstream
 #   control-hard-extraction-large -> docs/study_control_small_hard_extraction_large.md  the same split with
 #                      the larger policy (d_model 128 x 4 layers) and 3 γ draws
+#   control-hard-extraction-large-5draws -> docs/study_control_small_hard_extraction_large_5draws.md  the
+#                      same with 5 γ draws and 20 test goals per task (the size its report asks for)
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
 #        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|
-#        control-hard-extraction|control-hard-extraction-large|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-hard-extraction|control-hard-extraction-large|control-hard-extraction-large-5draws|
+#        state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -63,6 +66,12 @@ case "$preset" in
       --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
       --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2]' \
       --report docs/study_control_small_hard_extraction_large.md ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-large|state|pixels]" >&2
+  control-hard-extraction-large-5draws)
+    .venv/bin/capvector study --preset study-control-small --set name=study-control-small-hard-extraction-large \
+      --set 'splits.extraction=[dial-turn-v3,door-unlock-v3,door-lock-v3,door-close-v3,plate-slide-back-v3,window-close-v3]' \
+      --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
+      --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2,3,4]' \
+      --set evaluation.episodes_per_task=20 --report docs/study_control_small_hard_extraction_large_5draws.md ;;
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-large|control-hard-extraction-large-5draws|state|pixels]" >&2
      exit 2 ;;
 esac
