@@ -19,13 +19,15 @@
 #                      the larger policy (d_model 128 x 4 layers) and 3 γ draws
 #   control-hard-extraction-large-5draws -> docs/study_control_small_hard_extraction_large_5draws.md  the
 #                      same with 5 γ draws and 20 test goals per task (the size its report asks for)
+#   control-hard-extraction-large-8seeds -> docs/study_control_small_hard_extraction_large_8seeds.md  3 γ draws,
+#                      8 training seeds, 30 test goals per task (toward the 5-draw report's sizing, 8 seeds x 50 goals)
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
 #        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|
 #        control-hard-extraction|control-hard-extraction-large|control-hard-extraction-large-5draws|
-#        state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-hard-extraction-large-8seeds|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -72,6 +74,12 @@ case "$preset" in
       --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
       --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2,3,4]' \
       --set evaluation.episodes_per_task=20 --report docs/study_control_small_hard_extraction_large_5draws.md ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-large|control-hard-extraction-large-5draws|state|pixels]" >&2
+  control-hard-extraction-large-8seeds)
+    .venv/bin/capvector study --preset study-control-small --set name=study-control-small-hard-extraction-large \
+      --set 'splits.extraction=[dial-turn-v3,door-unlock-v3,door-lock-v3,door-close-v3,plate-slide-back-v3,window-close-v3]' \
+      --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
+      --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2]' --set 'seeds=[0,1,2,3,4,5,6,7]' \
+      --set evaluation.episodes_per_task=30 --report docs/study_control_small_hard_extraction_large_8seeds.md ;;
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-large|control-hard-extraction-large-5draws|control-hard-extraction-large-8seeds|state|pixels]" >&2
      exit 2 ;;
 esac
