@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 run: install
-	$(VENV)/bin/capvector study --preset study-control-small
+	$(VENV)/bin/capvector study --preset study-control-hard-extraction-small
 
 test: install
 	$(PY) -m ruff check .

@@ -261,8 +261,11 @@ def reevaluate(
 def study(
     preset: Annotated[
         str,
-        typer.Option(help="study-control-small | study-control | study-state | study-pixels | a YAML path"),
-    ] = "study-control-small",
+        typer.Option(
+            help="study-control-hard-extraction-small | study-control-hard-extraction | study-control-small "
+            "| study-state | study-pixels | a YAML path"
+        ),
+    ] = "study-control-hard-extraction-small",
     overrides: SetOption = None,
     home: HomeOption = None,
     report: Annotated[

@@ -3,7 +3,7 @@
 # λ) is made inside the flow on validation goals and recorded as a `selection` artifact; each report is
 # written with its figures beside it. Every step is cached, so a study interrupted in one session goes on
 # where it stopped in the next.
-#   control-small -> docs/study_control_small.md  the default of `make run`: the positive-control testbed
+#   control-small -> docs/study_control_small.md  the random-feature positive-control testbed, 2 x 2
 #   control       -> docs/study_control.md        the same testbed, 2 draws x 2 seeds x 140 test goals
 #   control-10000 -> docs/study_control_10000.md  the same at its declared 3 x 3, extraction 10,000 steps
 #   control-hard  -> docs/study_control_hard.md   the six hardest calibrated tasks downstream
@@ -13,28 +13,28 @@
 #   control-large-3draws -> docs/study_control_small_large_3draws.md  the same with a third γ draw
 #   control-large-5draws -> docs/study_control_small_large_5draws.md  the same with five γ draws
 #   control-large-2000 -> docs/study_control_small_large_2000.md  3 draws, 2000-step extraction runs
-#   control-hard-extraction -> docs/study_control_small_hard_extraction.md  `control-small` with the six
+#   control-hard-extraction-split -> docs/study_control_small_hard_extraction.md  `control-small` with the six
 #                      hardest calibrated tasks for extraction (room for precondition b), the nine others downstream
-#   control-hard-extraction-large -> docs/study_control_small_hard_extraction_large.md  the same split with
-#                      the larger policy (d_model 128 x 4 layers) and 3 γ draws
+#   control-hard-extraction-small -> docs/study_control_hard_extraction_small.md  the default of `make run`:
+#                      the same split with the larger policy (d_model 128 x 4 layers) and 3 γ draws
 #   control-hard-extraction-large-5draws -> docs/study_control_small_hard_extraction_large_5draws.md  the
 #                      same with 5 γ draws and 20 test goals per task (the size its report asks for)
-#   control-hard-extraction-large-8seeds -> docs/study_control_small_hard_extraction_large_8seeds.md  3 γ draws,
-#                      8 training seeds, 30 test goals per task (toward the 5-draw report's sizing, 8 seeds x 50 goals)
+#   control-hard-extraction -> docs/study_control_hard_extraction.md  the study that answers the question:
+#                      3 γ draws, 8 training seeds, 30 test goals per task (the 5-draw report's sizing)
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
 #        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|
-#        control-hard-extraction|control-hard-extraction-large|control-hard-extraction-large-5draws|
-#        control-hard-extraction-large-8seeds|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-hard-extraction|control-hard-extraction-small|
+#        control-hard-extraction-large-5draws|control-hard-extraction-split|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-preset="${1:-control-small}"
+preset="${1:-control-hard-extraction-small}"
 case "$preset" in
-  control-small | control | control-hard | state | pixels)
+  control-small | control | control-hard | control-hard-extraction | control-hard-extraction-small | state | pixels)
     .venv/bin/capvector study --preset "study-$preset" --report "docs/study_${preset//-/_}.md" ;;
   control-10000)
     .venv/bin/capvector study --preset study-control --set 'study.draws=[0,1,2]' --set 'seeds=[0,1,2]' \
@@ -57,29 +57,17 @@ case "$preset" in
       --set policy.d_model=128 --set policy.n_layers=4 --set "study.draws=[0,1,2]" \
       --set extraction.steps=2000 --set extraction.checkpoint_every=500 \
       --report docs/study_control_small_large_2000.md ;;
-  control-hard-extraction)
+  control-hard-extraction-split)
     .venv/bin/capvector study --preset study-control-small --set name=study-control-small-hard-extraction \
       --set 'splits.extraction=[dial-turn-v3,door-unlock-v3,door-lock-v3,door-close-v3,plate-slide-back-v3,window-close-v3]' \
       --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
       --report docs/study_control_small_hard_extraction.md ;;
-  control-hard-extraction-large)
-    .venv/bin/capvector study --preset study-control-small --set name=study-control-small-hard-extraction-large \
-      --set 'splits.extraction=[dial-turn-v3,door-unlock-v3,door-lock-v3,door-close-v3,plate-slide-back-v3,window-close-v3]' \
-      --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
-      --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2]' \
-      --report docs/study_control_small_hard_extraction_large.md ;;
   control-hard-extraction-large-5draws)
     .venv/bin/capvector study --preset study-control-small --set name=study-control-small-hard-extraction-large \
       --set 'splits.extraction=[dial-turn-v3,door-unlock-v3,door-lock-v3,door-close-v3,plate-slide-back-v3,window-close-v3]' \
       --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
       --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2,3,4]' \
       --set evaluation.episodes_per_task=20 --report docs/study_control_small_hard_extraction_large_5draws.md ;;
-  control-hard-extraction-large-8seeds)
-    .venv/bin/capvector study --preset study-control-small --set name=study-control-small-hard-extraction-large \
-      --set 'splits.extraction=[dial-turn-v3,door-unlock-v3,door-lock-v3,door-close-v3,plate-slide-back-v3,window-close-v3]' \
-      --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
-      --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2]' --set 'seeds=[0,1,2,3,4,5,6,7]' \
-      --set evaluation.episodes_per_task=30 --report docs/study_control_small_hard_extraction_large_8seeds.md ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-large|control-hard-extraction-large-5draws|control-hard-extraction-large-8seeds|state|pixels]" >&2
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-small|control-hard-extraction-large-5draws|control-hard-extraction-split|state|pixels]" >&2
      exit 2 ;;
 esac

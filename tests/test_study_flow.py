@@ -187,6 +187,34 @@ def test_study_presets_are_checked_before_anything_runs(tmp_path):
     assert proc.returncode != 0 and "capvector study --preset study-smoke" in proc.stderr
 
 
+def test_the_hard_extraction_presets_are_study_control_small_with_their_declared_changes():
+    """`make run`'s study and the one that answers issue 26 differ from `study-control-small` only where
+    their comments say: study-control-hard's split swapped (its six hardest tasks train θ_ft and θ_ao),
+    the larger policy, 3 draws; the answer adds 8 seeds and 30 test goals per task."""
+    base, hard = load_study("study-control-small"), load_study("study-control-hard")
+    small = load_study("study-control-hard-extraction-small")
+    answer = load_study("study-control-hard-extraction")
+    assert small.splits.extraction == hard.splits.downstream
+    assert small.splits.downstream == hard.splits.extraction
+    expected = base.model_copy(
+        update={
+            "name": small.name,
+            "splits": small.splits,
+            "policy": base.policy.model_copy(update={"d_model": 128, "n_layers": 4}),
+            "study": base.study.model_copy(update={"draws": [0, 1, 2]}),
+        }
+    )
+    assert small.model_dump() == expected.model_dump()
+    expected = small.model_copy(
+        update={
+            "name": answer.name,
+            "seeds": list(range(8)),
+            "evaluation": small.evaluation.model_copy(update={"episodes_per_task": 30}),
+        }
+    )
+    assert answer.model_dump() == expected.model_dump()
+
+
 def test_the_pixels_study_records_patch_targets_where_its_objective_reads_them():
     config = load_study("study-pixels")
     assert config.aux.name == "spatial_depth"
