@@ -12,7 +12,7 @@ rounds of (recipe seconds / SFT seconds), each round's runs adjacent in time.
 module; nothing in the working tree changes), so an optimisation's before and after come from the same
 run, alternating like the others.
 
-    python benchmarks/bench_step_cost.py --steps 200 --rounds 5 [--before REV] [--models study-small]
+    python benchmarks/bench_step_cost.py --steps 200 --rounds 5 [--before REV] [--models study-small study-large]
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from capvector_core.trainer import AuxConfig, TrainConfig, train
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results"
 RECIPES = ("sft", "capvector", "aux")
-MODELS = {"study-small": (64, 2), "quick": (128, 4)}
+MODELS = {"study-small": (64, 2), "study-large": (128, 4)}
 REGULARIZERS = {"capvector": OrthogonalRegularizer}
 
 
