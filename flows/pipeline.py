@@ -13,19 +13,19 @@ from __future__ import annotations
 from typing import Any
 
 from prefect import flow
-from prefect.task_runners import ProcessPoolTaskRunner
 
 from flows.config import PipelineConfig
 from flows.recipe import pipeline_steps, run_pipeline
 from flows.runs import publish_markdown, recorded_run, run_name
+from flows.step_pool import StepPool
 from flows.steps import StepRunner
 from tasks.prefect_task import bind_worker_to_parent
 from tasks.reporting import load_report
 from tasks.workspace import workspace_for
 
 
-def step_runner(workers: int = 2) -> ProcessPoolTaskRunner:
-    return ProcessPoolTaskRunner(max_workers=workers, initializer=bind_worker_to_parent)
+def step_runner(workers: int = 2) -> StepPool:
+    return StepPool(max_workers=workers, initializer=bind_worker_to_parent)
 
 
 @flow(
