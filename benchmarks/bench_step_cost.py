@@ -12,7 +12,7 @@ rounds of (recipe seconds / SFT seconds), each round's runs adjacent in time.
 module; nothing in the working tree changes), so an optimisation's before and after come from the same
 run, alternating like the others.
 
-    python benchmarks/bench_step_cost.py --steps 200 --rounds 5 [--before REV] [--models study-small study-large]
+    python benchmarks/bench_step_cost.py --steps 200 --rounds 5 [--before REV] [--models study-large]
 """
 
 from __future__ import annotations

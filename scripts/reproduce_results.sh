@@ -21,15 +21,16 @@
 #                      same with 5 γ draws and 20 test goals per task (the size its report asks for)
 #   control-hard-extraction -> docs/study_control_hard_extraction.md  the study that answers the question:
 #                      3 γ draws, 8 training seeds, 30 test goals per task (the 5-draw report's sizing)
-#   control-hard-extraction-flow -> docs/study_control_hard_extraction_flow.md  the same study on the
-#                      flow-matching backbone (policy.type=flow; declared before it ran, after the l1_chunk result)
+#   control-hard-extraction-small-flow -> docs/study_control_hard_extraction_small_flow.md  `make run`'s
+#                      study on the flow-matching backbone (policy.type=flow; declared after the l1_chunk result,
+#                      at make-run size because the 8-seed design takes longer than a session has left)
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
 #        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|
 #        control-hard-extraction|control-hard-extraction-small|
-#        control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-flow|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -70,9 +71,9 @@ case "$preset" in
       --set 'splits.downstream=[faucet-close-v3,handle-press-side-v3,coffee-button-v3,button-press-v3,button-press-wall-v3,faucet-open-v3,handle-press-v3,drawer-close-v3,plate-slide-side-v3]' \
       --set policy.d_model=128 --set policy.n_layers=4 --set 'study.draws=[0,1,2,3,4]' \
       --set evaluation.episodes_per_task=20 --report docs/study_control_small_hard_extraction_large_5draws.md ;;
-  control-hard-extraction-flow)
-    .venv/bin/capvector study --preset study-control-hard-extraction --set policy.type=flow \
-      --set name=study-control-hard-extraction-flow --report docs/study_control_hard_extraction_flow.md ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-small|control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-flow|state|pixels]" >&2
+  control-hard-extraction-small-flow)
+    .venv/bin/capvector study --preset study-control-hard-extraction-small --set policy.type=flow \
+      --set name=study-control-hard-extraction-small-flow --report docs/study_control_hard_extraction_small_flow.md ;;
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-small|control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|state|pixels]" >&2
      exit 2 ;;
 esac
