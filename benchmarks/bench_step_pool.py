@@ -14,14 +14,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import time
 from pathlib import Path
 
-from prefect import flow, task
-from prefect.task_runners import ProcessPoolTaskRunner
+for _key, _value in (("PREFECT_SERVER_ANALYTICS_ENABLED", "false"), ("DO_NOT_TRACK", "1")):
+    os.environ.setdefault(_key, _value)  # as the Makefile sets them: no telemetry attempts in the timings
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 
-from flows.step_pool import StepPool
+from prefect import flow, task  # noqa: E402
+from prefect.task_runners import ProcessPoolTaskRunner  # noqa: E402
+
+from flows.step_pool import StepPool  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 RUNNERS = {"stock": ProcessPoolTaskRunner, "step_pool": StepPool}
@@ -88,8 +93,11 @@ def main() -> None:
             f"| {name} | {median[name]:.2f} | {', '.join(f'{x:.2f}' for x in seconds[name])} |\n"
             for name in RUNNERS
         )
-        + f"\nStepPool / stock: **{entry['ratio_step_pool_to_stock']:.2f}×**; the 2-worker floor "
-        f"(training steps in pairs, then one read) is {floor:.2f} s.\n"
+        + f"\nStepPool / stock: **{entry['ratio_step_pool_to_stock']:.2f}×**. The 2-worker floor "
+        f"(training steps in pairs, then one read) is {floor:.2f} s; both makespans also hold the "
+        "pool's start (spawned workers importing Prefect) and Prefect's per-step work in a worker "
+        "(task-run records in its API), equal for both runners. On the stock pool the training steps "
+        "run one at a time.\n"
     )
 
 
