@@ -24,13 +24,15 @@
 #   control-hard-extraction-small-flow -> docs/study_control_hard_extraction_small_flow.md  `make run`'s
 #                      study on the flow-matching backbone (policy.type=flow; declared after the l1_chunk result,
 #                      at make-run size because the 8-seed design takes longer than a session has left)
+#   control-hard-extraction-flow -> docs/study_control_hard_extraction_flow.md  the 8-seed study on the flow
+#                      backbone (declared after the make-run-size flow study: aux - SFT +9.8 on df 1, (c) +8.5)
 #   state         -> docs/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
 #        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|
 #        control-hard-extraction|control-hard-extraction-small|
-#        control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|control-hard-extraction-flow|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -74,6 +76,9 @@ case "$preset" in
   control-hard-extraction-small-flow)
     .venv/bin/capvector study --preset study-control-hard-extraction-small --set policy.type=flow \
       --set name=study-control-hard-extraction-small-flow --report docs/study_control_hard_extraction_small_flow.md ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-small|control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|state|pixels]" >&2
+  control-hard-extraction-flow)
+    .venv/bin/capvector study --preset study-control-hard-extraction --set policy.type=flow \
+      --set name=study-control-hard-extraction-flow --report docs/study_control_hard_extraction_flow.md ;;
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-small|control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|control-hard-extraction-flow|state|pixels]" >&2
      exit 2 ;;
 esac
