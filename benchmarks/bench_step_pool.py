@@ -14,19 +14,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import time
 from pathlib import Path
 
-for _key, _value in (("PREFECT_SERVER_ANALYTICS_ENABLED", "false"), ("DO_NOT_TRACK", "1")):
-    os.environ.setdefault(_key, _value)  # as the Makefile sets them: no telemetry attempts in the timings
-os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+import flows  # noqa: F401  (first: its __init__ sets Prefect's environment, no telemetry in the timings)
 
-from prefect import flow, task  # noqa: E402
-from prefect.task_runners import ProcessPoolTaskRunner  # noqa: E402
+# isort: split
+from prefect import flow, task
+from prefect.task_runners import ProcessPoolTaskRunner
 
-from flows.step_pool import StepPool  # noqa: E402
+from flows.step_pool import StepPool
 
 RESULTS = Path(__file__).resolve().parent / "results"
 RUNNERS = {"stock": ProcessPoolTaskRunner, "step_pool": StepPool}

@@ -15,7 +15,7 @@ Waiting costs a thread nothing, so `StepPool` gives each waiting step its own (u
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Self
 
 from prefect.task_runners import ProcessPoolTaskRunner
 
@@ -24,7 +24,7 @@ WAITING_STEPS = 512
 
 
 class StepPool(ProcessPoolTaskRunner):
-    def __enter__(self) -> Any:
+    def __enter__(self) -> Self:
         super().__enter__()
         narrow = getattr(self, "_resolver_executor", None)
         if isinstance(narrow, ThreadPoolExecutor):  # prefect versions that resolve inputs in the parent
