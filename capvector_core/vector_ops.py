@@ -1,6 +1,6 @@
-"""Streaming capability-vector arithmetic on safetensors checkpoints: `extract`, `merge`, `stats`.
+"""Streaming capability-vector arithmetic on safetensors checkpoints: `extract`, `merge`, `mean`, `stats`.
 
-All three walk the checkpoints tensor by tensor, each tensor in pieces of `CHUNK_BYTES` (memory bounded
+All of them walk the checkpoints tensor by tensor, each tensor in pieces of `CHUNK_BYTES` (memory bounded
 by a few pieces, whatever the tensors' size), so they work on any safetensors checkpoint, including a
 sharded Hugging Face one. Conventions:
 - float16/bfloat16 are computed in float32 and written back in their own dtype (float64 stays float64),
@@ -18,7 +18,8 @@ sharded Hugging Face one. Conventions:
   so the same inputs give the same bytes wherever they are stored, and hence the same artifact id),
   `capvector.include`/`capvector.exclude`, and for vectors `capvector.partial` and optionally
   `capvector.base_sha256` (the θ_pt the vector is meant to be added to); a merge also keeps base's
-  metadata (its policy config: a merged policy loads like its base; see `merge`).
+  metadata (its policy config: a merged policy loads like its base; see `merge`); a mean says its
+  `capvector.method` (and `capvector.density` for TIES).
 
 Name filters: `include`/`exclude` are lists of patterns in the project's one syntax
 (`capvector_core.module_patterns`, shared with LoRA targets): a shell-style glob on the whole name (`*`
@@ -38,6 +39,7 @@ import os
 import re
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from decimal import Decimal
 from pathlib import Path
 from typing import Literal
 
@@ -192,6 +194,16 @@ class _HashingReader:
         self.close()
         self.done = done
         return done
+
+    def peek(self, name: str, bounds: list[tuple[int, int]], buf: np.ndarray) -> Iterator[np.ndarray]:
+        """The pieces of `chunks`, read into `buf` (through the file's copy, if it has one) but not
+        hashed: a pass that only looks ahead (`mean`'s TIES threshold). `chunks` reads them again
+        afterwards, and hashes what it computes from; a file changed in between is refused by
+        `file_digests` (its identity) or by the caller's check of the digest."""
+        spec = self.ckpt.specs[name]
+        copy = self.copies.get(spec.file)
+        for b, e in bounds:
+            yield _read(spec.file, copy, spec.begin + b, buf[: e - b]).view(STORAGE[spec.dtype])
 
     def copied(self) -> dict[Path, str]:
         """copy path -> sha256 of its bytes (those hashed and computed from)."""
@@ -637,6 +649,230 @@ def merge(
         for r in readers.values():
             r.close()
         pool.shutdown()
+
+
+MEAN_METHODS = ("mean", "ties")
+MEAN_FORMULAS = {
+    "mean": "mean_i vector_i",
+    "ties": "ties(vector_i): each trimmed to its top density by magnitude, sign of the sum elected, "
+    "mean of the entries of that sign",
+}
+# float dtype -> (unsigned type of its bits, the bits but the sign, bits): |x| orders as these integers
+_MAGNITUDE = {
+    "F64": (np.uint64, 0x7FFF_FFFF_FFFF_FFFF, 64),
+    "F32": (np.uint32, 0x7FFF_FFFF, 32),
+    "F16": (np.uint16, 0x7FFF, 16),
+    "BF16": (np.uint16, 0x7FFF, 16),
+    "F8_E4M3": (np.uint8, 0x7F, 8),
+    "F8_E5M2": (np.uint8, 0x7F, 8),
+}
+
+
+def check_mean_args(count: int, method: str, density: float) -> None:
+    """`mean`'s arguments, checked before anything is read (the CLI calls it first too)."""
+    if count < 2:
+        raise VectorOpError(f"a mean needs at least 2 vectors, got {count}")
+    if method not in MEAN_METHODS:
+        raise VectorOpError(f"method must be one of {', '.join(MEAN_METHODS)}, got {method!r}")
+    if not (isinstance(density, int | float) and math.isfinite(density) and 0 < density <= 1):
+        raise VectorOpError(f"density must be a number in (0, 1], got {density!r}")
+
+
+def mean(
+    vectors: Sequence[PathLike],
+    out: PathLike,
+    method: Literal["mean", "ties"] = "mean",
+    density: float = 0.2,
+    max_shard_bytes: int = DEFAULT_MAX_SHARD_BYTES,
+    overwrite: bool = False,
+    hashes: dict[Path, str] | None = None,
+    copies: Mapping[Path, Path] | None = None,
+) -> Path:
+    """Write the mean of K ≥ 2 vectors (γ̄_K of K seed draws of θ_ao − θ_ft: the seed noise averages out),
+    or with `method="ties"` their TIES merge (Yadav et al. 2023, as mergekit's `ties`).
+
+    The vectors must hold the same tensors (shapes, dtypes); they are streamed together, a piece of
+    each tensor of each at a time (memory: K pieces, whatever K's checkpoints weigh). `mean`:
+    (Σ_i vector_i) / K, in float32 (float64 for F64). `ties`, per tensor: each vector keeps its
+    entries whose magnitude is at least its k-th largest, k = ⌈density·numel⌉ (entries tied with the
+    k-th are all kept), the others become 0; each entry's sign is elected as the sign of the sum of the
+    kept values; the result is the mean of the kept values of that sign (0 where the sum is 0, a tie,
+    or nothing was kept: unlike mergekit, which elects + on a tie). The threshold is found exactly in
+    bounded memory: a tensor of one piece is partitioned; a larger one costs one more read per 16 bits
+    of its dtype (a radix selection on the magnitude's bits). Non-float tensors must be equal in all
+    (carried over). The same file (or the same bytes) given twice is refused: each draw counts once.
+    The output is a vector (`capvector.kind`), naming its inputs `vector_0`… by sha256, with their
+    `capvector.base_sha256` (inputs naming different bases are refused), `capvector.partial` if any
+    is, and their `capvector.include`/`exclude` where all agree. `hashes`, `copies`: as in `extract`.
+    """
+    check_mean_args(len(vectors), method, density)
+    vecs = [Checkpoint(p) for p in vectors]
+    first: dict[Path, int] = {}
+    for i, v in enumerate(vecs):
+        j = first.setdefault(v.path.resolve(), i)
+        if j != i:
+            raise VectorOpError(
+                f"vector {j} and vector {i} are the same checkpoint ({v.path}): each counts once"
+            )
+    ref = vecs[0]
+    for i, v in enumerate(vecs[1:], 1):
+        role = f"vector {i} ({v.path}; vector 0 is {ref.path})"
+        _key_diff(ref, v, role)
+        _compare(ref, v, role, ref.keys())
+    bases: dict[str, list[int]] = {}
+    for i, v in enumerate(vecs):
+        if want := v.metadata.get("capvector.base_sha256"):
+            bases.setdefault(want, []).append(i)
+    if len(bases) > 1:
+        named = "; ".join(f"{b[:12]}… (vector {', '.join(map(str, ix))})" for b, ix in bases.items())
+        raise VectorOpError(f"the vectors were extracted for different bases: {named}")
+    partial = any(json.loads(v.metadata.get("capvector.partial", "false")) for v in vecs)
+    meta = {
+        "capvector.kind": "vector",
+        "capvector.formula": MEAN_FORMULAS[method],
+        "capvector.method": method,
+        "capvector.partial": json.dumps(partial),
+    }
+    if method == "mean":
+        meta["capvector.coefficients"] = json.dumps([1 / len(vecs)] * len(vecs))
+    else:
+        meta["capvector.density"] = json.dumps(density)
+    for key in ("capvector.include", "capvector.exclude"):
+        values = {v.metadata.get(key) for v in vecs}
+        if len(values) == 1 and None not in values:
+            meta[key] = values.pop()
+    if bases:
+        meta["capvector.base_sha256"] = next(iter(bases))
+    pool = ThreadPoolExecutor(1)
+    copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
+    readers = [_HashingReader(v, pool, copies) for v in vecs]
+    scratch = _Scratch()
+
+    def compute(n: str) -> Iterator[np.ndarray]:
+        spec, bounds = ref.specs[n], ref.chunk_bounds(n, CHUNK_BYTES)
+        dtype, numel = spec.dtype, spec.nbytes // spec.itemsize
+        ties = method == "ties" and dtype in FLOATS
+        keep = _keep_count(numel, density)
+        limits = None  # per vector, the magnitude (as its bits) an entry needs to be kept
+        if ties and len(bounds) > 1:
+            limits = [_kth_largest_streamed(r, n, bounds, keep, scratch) for r in readers]
+        for xs in zip(*(r.chunks(n, bounds) for r in readers), strict=True):
+            if dtype not in FLOATS:
+                for i, y in enumerate(xs[1:], 1):
+                    if not np.array_equal(xs[0], y):
+                        raise VectorOpError(f"non-float tensor {n!r} differs between vector 0 and vector {i}")
+                yield xs[0]
+                continue
+            # Never modify an input piece in place: its bytes may still be being hashed in the helper thread.
+            inputs = [(f"vector {i} ({v.path})", x) for i, (v, x) in enumerate(zip(vecs, xs, strict=True))]
+            if ties:
+                for role, x in inputs:  # NaN would compare as neither sign and vanish from the result
+                    _finite_or_raise(x, dtype, n, role)
+                if limits is None:  # the whole tensor is this one piece
+                    limits_here = [_kth_largest(_magnitude(x, dtype), keep) for x in xs]
+                else:
+                    limits_here = limits
+                acc = _ties_piece(xs, dtype, limits_here, scratch)
+            else:
+                acc = _mean_piece(xs, dtype, scratch)
+            yield _cast_back(acc, dtype, n, inputs, scratch)
+
+    def check(digests: dict[str, str]) -> None:
+        seen: dict[str, str] = {}
+        for role, digest in digests.items():
+            if (other := seen.setdefault(digest, role)) != role:
+                raise VectorOpError(
+                    f"{other.replace('_', ' ')} and {role.replace('_', ' ')} are the same bytes "
+                    f"(sha256 {digest[:12]}…): each vector counts once in a mean"
+                )
+
+    roles = {f"vector_{i}": r for i, r in enumerate(readers)}
+    try:
+        return _run(out, ref.keys(), ref, roles, meta, compute, max_shard_bytes, overwrite, check, hashes)
+    finally:
+        for r in readers:
+            r.close()
+        pool.shutdown()
+
+
+def _mean_piece(xs: Sequence[np.ndarray], dtype: str, scratch: _Scratch) -> np.ndarray:
+    k, wide = xs[0].size, _wide(dtype)
+    acc = scratch("acc", k, wide)
+    np.copyto(acc, _widen(xs[0], dtype, scratch("y", k, wide)))
+    for y in xs[1:]:
+        np.add(acc, _widen(y, dtype, scratch("y", k, wide)), out=acc)
+    return np.divide(acc, len(xs), out=acc)
+
+
+def _ties_piece(xs: Sequence[np.ndarray], dtype: str, limits: Sequence[int], scratch: _Scratch) -> np.ndarray:
+    """TIES on one piece: per vector, entries below its magnitude limit dropped; the sums and counts of
+    the kept positive and negative entries; where the sum of all kept is > 0 the mean of the positive
+    ones, < 0 of the negative ones, else 0."""
+    k, wide = xs[0].size, _wide(dtype)
+    sums = {s: scratch(f"sum{s}", k, wide) for s in "+-"}
+    counts = {s: scratch(f"count{s}", k, wide) for s in "+-"}
+    for a in (*sums.values(), *counts.values()):
+        a.fill(0)
+    kept, sel = scratch("kept", k, np.bool_), scratch("sel", k, np.bool_)
+    for x, limit in zip(xs, limits, strict=True):
+        np.greater_equal(_magnitude(x, dtype, scratch("key", k, _MAGNITUDE[dtype][0])), limit, out=kept)
+        xw = _widen(x, dtype, scratch("x", k, wide))
+        for s, side in (("+", np.greater), ("-", np.less)):
+            np.logical_and(side(xw, 0, out=sel), kept, out=sel)
+            np.add(sums[s], xw, out=sums[s], where=sel)
+            np.add(counts[s], sel, out=counts[s])
+    total = np.add(sums["+"], sums["-"], out=scratch("total", k, wide))
+    acc = scratch("acc", k, wide)
+    acc.fill(0)
+    for s, side in (("+", np.greater), ("-", np.less)):
+        np.divide(sums[s], counts[s], out=acc, where=side(total, 0, out=sel))
+    return acc
+
+
+def _keep_count(numel: int, density: float) -> int:
+    """⌈density·numel⌉, with density as written (0.3 of 10 is 3, not the 4 that 0.3·10 in floats gives)."""
+    return min(numel, math.ceil(Decimal(repr(float(density))) * numel))
+
+
+def _magnitude(x: np.ndarray, dtype: str, out: np.ndarray | None = None) -> np.ndarray:
+    """|x| as unsigned integers in the same order (a float's bits without its sign; NaN above Inf)."""
+    bits, mask, _ = _MAGNITUDE[dtype]
+    return np.bitwise_and(x.view(bits), bits(mask), out=out)
+
+
+def _kth_largest(keys: np.ndarray, k: int) -> int:
+    """The k-th largest of `keys` (0 if there are none: every entry is kept)."""
+    if k <= 0 or keys.size == 0:
+        return 0
+    return int(np.partition(keys, keys.size - k)[keys.size - k])
+
+
+def _kth_largest_streamed(
+    reader: _HashingReader, name: str, bounds: list[tuple[int, int]], k: int, scratch: _Scratch
+) -> int:
+    """`_kth_largest` of one tensor's magnitudes, read piece by piece: a radix selection, 16 bits of the
+    key per pass (a histogram of the next 16 bits among the keys that share the bits chosen so far)."""
+    if k <= 0:
+        return 0
+    dtype = reader.ckpt.specs[name].dtype
+    bits, _, nbits = _MAGNITUDE[dtype]
+    width = min(16, nbits)
+    buf = scratch("peek", max(e - b for b, e in bounds), np.uint8)
+    prefix, rank = 0, k  # rank: which largest among the keys that start with `prefix`
+    for shift in range(nbits - width, -1, -width):
+        hist = np.zeros(1 << width, np.int64)
+        for x in reader.peek(name, bounds, buf):
+            keys = _magnitude(x, dtype)
+            if shift + width < nbits:
+                keys = keys[(keys >> bits(shift + width)) == prefix]
+            digits = (keys >> bits(shift)) & bits((1 << width) - 1)
+            hist += np.bincount(digits.astype(np.intp), minlength=1 << width)
+        from_top = np.cumsum(hist[::-1])
+        i = int(np.searchsorted(from_top, rank))  # the first digit, from the top, that reaches `rank`
+        digit = (1 << width) - 1 - i
+        rank -= int(from_top[i] - hist[digit])
+        prefix = (prefix << width) | digit
+    return prefix
 
 
 def null_vector(

@@ -1,4 +1,5 @@
-"""`capvector vector extract | merge | stats`: capability-vector arithmetic on safetensors checkpoints."""
+"""`capvector vector extract | merge | mean | stats`: capability-vector arithmetic on safetensors
+checkpoints."""
 
 from __future__ import annotations
 
@@ -50,6 +51,21 @@ def vector_merge(
     record = merge_cli(
         workspace(home), base, list(zip(vectors, alphas, strict=True)), out, include, exclude, force
     )
+    console.print(f"{out}  (artifact {record.id})")
+
+
+@vector_app.command("mean")
+def vector_mean(
+    vectors: Annotated[list[str], typer.Argument(help="K ≥ 2 vectors: files, sharded dirs or artifact ids")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="*.safetensors = one file, else a sharded dir")],
+    method: Annotated[str, typer.Option(help="mean | ties (TIES merging: trim, elect signs, mean)")] = "mean",
+    density: Annotated[float, typer.Option(help="ties: the share of each tensor a vector keeps")] = 0.2,
+    home: HomeOption = None,
+) -> None:
+    """γ̄ = mean of VECTORS (K seed draws: seed noise averaged out), streamed; an edge per input."""
+    from tasks.vector_commands import mean_cli
+
+    record = mean_cli(workspace(home), vectors, out, method, density)
     console.print(f"{out}  (artifact {record.id})")
 
 

@@ -378,6 +378,40 @@ def merge_cli(
         return _produce(workspace, stage, out, inputs, compute, "checkpoint", config)
 
 
+def mean_cli(
+    workspace: Workspace, vectors: list[str], out: Path, method: str = "mean", density: float = 0.2
+) -> ArtifactRecord:
+    """γ̄ = the mean (or TIES merge) of K ≥ 2 vectors, each a path or an artifact id; an edge per input
+    (role `vector`, its position as `index`)."""
+    out = Path(out)
+    vector_ops.check_mean_args(len(vectors), method, density)
+    _refuse_existing(out)
+    with workspace.api.store.staging() as stage:
+        located = _locate_all(workspace, [(v, "vector") for v in vectors], stage)
+        _refuse_repeated(vectors, located)
+        inputs = [(v, "vector", {"index": i}) for i, v in enumerate(located)]
+
+        def compute(dst: Path, hashes: dict[Path, str], copies: dict[Path, Path]) -> Path:
+            paths = [v.path for v in located]
+            return vector_ops.mean(paths, dst, method, density, hashes=hashes, copies=copies)
+
+        config = {"formula": vector_ops.MEAN_FORMULAS[method], "method": method, "vectors": len(vectors)}
+        if method == "ties":
+            config["density"] = density
+        return _produce(workspace, stage, out, inputs, compute, "vector", config)
+
+
+def _refuse_repeated(refs: list[str], located: list[Input]) -> None:
+    """The same vector named twice (two spellings of a path, an id and its prefix) would count twice."""
+    first: dict[str, int] = {}
+    for i, (ref, item) in enumerate(zip(refs, located, strict=True)):
+        key = item.record.id if item.record is not None else os.path.realpath(item.source)
+        j = first.setdefault(key, i)
+        if j != i:
+            same = "is named twice" if refs[j] == ref else f"and {refs[j]!r} are the same vector"
+            raise ValueError(f"{ref!r} {same} (inputs {j} and {i}): each vector counts once in a mean")
+
+
 def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: str | None) -> list[VectorStat]:
     from tasks.vectors import stat_rows  # imports Prefect: only this command needs it
 
