@@ -11,7 +11,7 @@ state_features` it runs the control studies' testbed instead (state through rand
 `spatial` objective) with the larger policy. `--train-procs` runs that many small, Python-bound
 trainings at once on the GPU, while a process pool rolls out each finished checkpoint on the CPUs. Every
 episode is appended to `<out>/episodes.jsonl` as it finishes (a run cut short still returns what it
-measured); `docs/` is written from those records on a workstation by `scripts/pixels_gate_report.py`.
+measured); `docs/studies/` is written from those records on a workstation by `scripts/pixels_gate_report.py`.
 
 Nothing is chosen here: every value (aux weight 0.5, lr, budgets) is declared below or on the command
 line before a rollout; with several `--aux-weights` the report chooses one on validation goals.
@@ -132,8 +132,8 @@ POLICY = {
     "chunk_size": 8,
 }
 # `--observation state_features`: the control studies' testbed (state through 128 random sine features
-# plus 32 high-frequency goal distractors, docs/calibration.md) with the larger policy of
-# docs/study_control_small_large*.md.
+# plus 32 high-frequency goal distractors, docs/studies/calibration.md) with the larger policy of
+# docs/studies/study_control_small_large*.md.
 STATE_POLICY = {
     "obs_mode": "state",
     "d_model": 128,

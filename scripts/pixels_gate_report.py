@@ -1,8 +1,8 @@
-"""The GPU gate runs' report from their committed episode records (docs/data/pixels_gpu_*.jsonl.gz).
+"""The GPU gate runs' report from their committed episode records (docs/studies/data/pixels_gpu_*.jsonl.gz).
 
 `scripts/pixels_gate_gpu.py` ran on lent H200 machines (and once on a workstation); its per-episode
-records and run summaries were copied into docs/data/. This script recomputes every number of
-docs/study_pixels_gpu.md from them with the study's own statistics (paired hierarchical bootstrap,
+records and run summaries were copied into docs/studies/data/. This script recomputes every number of
+docs/studies/study_pixels_gpu.md from them with the study's own statistics (paired hierarchical bootstrap,
 MDD) and draws the figure.
 
     python scripts/pixels_gate_report.py
@@ -21,7 +21,7 @@ import pandas as pd  # noqa: E402
 
 from capvector_stats.paired_differences import ENDPOINT, endpoint_rows, paired_difference, success_curve  # noqa: E402
 
-DOCS = Path(__file__).resolve().parent.parent / "docs"
+DOCS = Path(__file__).resolve().parent.parent / "docs" / "studies"
 RUNS = {
     "gate": "run 1: the gate phase (5 demos per downstream task, 400 steps, aux weight 0.5)",
     "scarce": "run 2: 2 demos per downstream task, aux weights 0.1 / 0.5 / 2 chosen on validation goals",
@@ -194,7 +194,7 @@ def draw(data: dict, path: Path) -> None:
 TEMPLATE = """# The GPU gate runs: no positive control (eight runs, all reported)
 
 Issue 26 asks for a testbed where the auxiliary objective helps before asking whether γ carries that
-help. The state testbed with random-feature observations gave +4.1 points (docs/study_control_10000.md).
+help. The state testbed with random-feature observations gave +4.1 points (docs/studies/study_control_10000.md).
 The faithful analogue of Spatial Forcing is pixels with the `spatial_depth` objective (each vision
 token regresses its own image patch's back-projected world xyz from MuJoCo's depth render). It is
 GPU-sized, so it ran when a GPU machine was lent (one NVIDIA H200 with 16 CPU cores, 15 minutes of
@@ -202,7 +202,7 @@ device time per session, three sessions). The machine has no Prefect or DuckDB, 
 `scripts/pixels_gate_gpu.py`, which calls `capvector_core` directly: the same demos, policies, trainer,
 objectives and evaluation as the flows, but without the catalogue or cache. Training ran on the GPU.
 Rollouts ran in a pool of 14 CPU processes with EGL rendering, started as each checkpoint was written.
-Every episode came back as a record (`docs/data/pixels_gpu_*.jsonl.gz`). This page is computed from those
+Every episode came back as a record (`docs/studies/data/pixels_gpu_*.jsonl.gz`). This page is computed from those
 records by `scripts/pixels_gate_report.py`.
 
 **Answer: on pixels, and on the state testbed with the larger policy (runs 7-8), the auxiliary
@@ -229,7 +229,7 @@ endpoint. This is the state testbed's +4 again, not a positive control. Run 4 wa
 two runs made in that batch, so some of its size was the luck of the pick.
 
 **Runs 7 and 8: the larger policy on the state testbed, with longer extraction and more seeds.**
-They test the lever docs/positive_control.md named as closest to passing the gate: the larger policy
+They test the lever docs/studies/positive_control.md named as closest to passing the gate: the larger policy
 (where (b) and (c) had each held in some 2-core design) with converged extraction runs and more test
 goals. Extraction ran 6000 steps (three times the 2-core studies' longest), 3 draws, 4 downstream
 seeds, 20 test goals per task, θ_ao's weight 2 (the larger-policy studies' validation choice). The
@@ -257,7 +257,7 @@ D_ext validation goals: +5.8 in run 1 (two draws, uninformative), −1.7 [−7.2
 the ceiling. (c) SFT from θ_ao − SFT from θ_ft: +2.7 (MDD ~30), +4.0 [−7.5, +17.3] and +4.1 [−0.3,
 +8.3]. So the gate would stop in every run.
 
-**Setup of the pixels runs (1-6).** Runs 1-3 use the control studies' splits (docs/calibration.md):
+**Setup of the pixels runs (1-6).** Runs 1-3 use the control studies' splits (docs/studies/calibration.md):
 θ_pt is trained on 8 pretraining tasks; D_ext has 6 tasks and D_down 7. Their difficulty was calibrated
 on state observations, not on pixels: SFT reaches 94 % at 400 steps here, so the tasks are easier in
 this mode than in the calibration's. Runs 4-6 use `study-control-hard`'s splits (its preset states the
@@ -291,7 +291,7 @@ replication. All six runs are reported; none was dropped.
 per-patch depth gave nothing (runs 1, 3, 5). Object and goal positions gave about 4 points (run 6), as
 they do on the state testbed. The remaining levers are a larger policy (the representation has
 more room to be shaped), multi-stage tasks, and distractors that change between demonstrations and
-test goals (docs/positive_control.md).
+test goals (docs/studies/positive_control.md).
 
 Speed: on the H200 (d_model 128, batch 64, with the rollout pool sharing the CPUs), SFT trained at
 51-107 steps/s and auxiliary SFT at 46-77 steps/s, in Python-bound small-model steps. Run 6 trained at
@@ -315,7 +315,7 @@ state_features --objective spatial --train-procs 6 --workers 9 --aux-weights 0.5
 --test-goals 20` for run 7, adding `--tasks hard` for run 8). Run 6 needs no GPU:
 `MUJOCO_GL=egl python scripts/pixels_gate_gpu.py --out OUT --tasks hard --objective spatial
 --aux-weights 0.5 --no-extraction --seeds 3 4 5 6 7 8 --workers 1` (41 minutes on 2 cores). Copy
-`episodes.jsonl` (gzipped) and `runs.json` into `docs/data/` and run this page's script.
+`episodes.jsonl` (gzipped) and `runs.json` into `docs/studies/data/` and run this page's script.
 
 ## The runs
 

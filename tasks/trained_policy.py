@@ -4,7 +4,7 @@ A checkpoint holds dense weights, so vectors can be taken from any of them. For 
 LoRA those weights are the trained policy exactly. A LoRA-SP adapter whose router depends on the
 input is not: its dense merge replaces each token's score vector with the mean over calibration
 batches, and on the `hard` setting that approximation lost about half the success of the adapter
-itself (docs/results_hard_adapters.md). So an evaluation of such a checkpoint runs its `init`
+itself (docs/studies/results_hard_adapters.md). So an evaluation of such a checkpoint runs its `init`
 weights with the adapter applied, and says so in its record.
 """
 

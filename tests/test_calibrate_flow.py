@@ -98,9 +98,9 @@ def test_too_few_kept_tasks_are_said_plainly():
 
 
 def test_the_rule_on_the_documented_calibration_gives_study_controls_sets():
-    """docs/calibration.md's first calibration (the one study-control's sets were declared from; the
+    """docs/studies/calibration.md's first calibration (the one study-control's sets were declared from; the
     flow's later measurement follows it) through the rule: study-control's sets, in order."""
-    doc = (Path(__file__).resolve().parent.parent / "docs" / "calibration.md").read_text()
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "studies" / "calibration.md").read_text()
     first = doc.split("## The calibration as a flow, measured")[0]
     rows = re.findall(r"^\| ([a-z-]+-v3) \| (\d+) \| (\d+) \| (\d+) \| (\d+) \|", first, re.M)
     assert len(rows) == 18

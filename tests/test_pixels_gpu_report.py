@@ -1,4 +1,4 @@
-"""docs/study_pixels_gpu.md is what scripts/pixels_gate_report.py makes of the committed episode records:
+"""docs/studies/study_pixels_gpu.md is what scripts/pixels_gate_report.py makes of the committed episode records:
 every table and the three headline differences are computed from them (the prose around them quotes
 numbers read off those tables)."""
 
