@@ -12,13 +12,19 @@ sampling variance is
 run-to-run and per-goal noise is shared by all draws: it lands in `seed` and `seed_goal`, which more
 draws do not shrink. Between arms that both depend on γ, seeds nest in draws and those two are 0.
 
-The default bootstrap ("residual") resamples draws, seeds, seeds within each drawn draw and goals
-within tasks, and evaluates each level's effects (rescaled to those estimates) at the drawn indices,
-so each level's variance counts once. Resampling raw cases the same way ("cases", the textbook
-hierarchical bootstrap) counts lower levels' noise again at each level above them (too wide) and takes
-a broadcast arm's runs for independent ones in every draw (too narrow); it is kept for comparison.
-With few draws or seeds the variance estimate has few degrees of freedom: CIs and MDDs use t quantiles
-at the Satterthwaite df (`small_sample=True`); normal ones would be too narrow.
+The interval the report presents ("moments", the default) is mean ± t_df · √V̂ with a conservative
+method-of-moments V̂: every mean square whose expectation holds a component of the variance, each with
+a positive weight (`_conservative_variance`), so no component estimated below 0 is clipped and then
+dropped. V̂ over-counts the run and interaction terms a little (E V̂ ≥ V); df is Satterthwaite's over
+those mean squares, so with 2 seeds and a large seed variance df is near 1 and the interval is as wide
+as the data make it (benchmarks/results/interval_coverage.md). Before issue 41 the report presented
+the "residual" hierarchical bootstrap: components estimated below 0 were clipped, dropped from the df
+and zeroed in the resampling, so its interval narrowed exactly when a variance was worst estimated
+(52 % coverage at 2 seeds where it claimed df ≥ 2). It stays, with the textbook "cases" bootstrap, for
+comparison. Beside every comparison the report prints a run-level cross-check (`cluster_*`): a t
+interval from the spread of run means alone (draw means and seed means), conditional on the goals.
+A design that cannot estimate a component it needs (one seed against a shared arm) gets df 0 and an
+interval of ±100, and says so.
 """
 
 from __future__ import annotations
@@ -63,7 +69,7 @@ def endpoint_rows(episodes: pd.DataFrame, budgets: Iterable[int]) -> pd.DataFram
     mean = rows.groupby(keys, as_index=False)["success"].mean()
     return mean.assign(budget=ENDPOINT)[list(COLUMNS)]
 
-Method = Literal["residual", "cases"]
+Method = Literal["moments", "residual", "cases"]
 _POINTS2 = 100.0**2
 
 
@@ -125,6 +131,11 @@ class Comparison(BaseModel):
     se: float
     df: float
     """Satterthwaite df of the variance estimate (inf without the small-sample correction)."""
+    cluster_low: float
+    cluster_high: float
+    cluster_df: float
+    """The run-level cross-check: a t interval from the spread of run means (draw and seed means),
+    conditional on the test goals; df 0 where there is one run per level."""
     mdd: float
     """Minimum detectable difference of this design: 80 % power, two-sided test at 1 − level."""
     arm_mean: float
@@ -158,10 +169,12 @@ class Comparison(BaseModel):
         where = f"{self.arm} − {self.baseline} @ {budget_name(self.budget)}"
         if not self.testable:
             return f"{where}: {self.difference:+.1f} points, untestable (the arms never differ: no variance)"
-        flag = "" if self.reliable else f"; df {self.df:.1f} < 2: the interval means little"
+        flag = "" if self.reliable else "; df < 2: too few seeds or draws to estimate its variance"
         return (
             f"{where}: {self.difference:+.1f} points [{self.ci_low:+.1f}, {self.ci_high:+.1f}] "
-            f"({100 * self.level:.0f} % CI), MDD {self.mdd:.1f}{flag}"
+            f"({100 * self.level:.0f} % CI, df {self.df:.1f}; run-level "
+            f"[{self.cluster_low:+.1f}, {self.cluster_high:+.1f}], df {self.cluster_df:.0f}), "
+            f"MDD {self.mdd:.1f}{flag}"
         )
 
 
@@ -271,6 +284,56 @@ def _satterthwaite(
     return sum(x for x, _ in terms) ** 2 / spread if spread > 0 else math.inf
 
 
+_FLOORS = {"A": "AC", "B": "BC", "AB": "ABC"}
+"""A run-level mean square → the goal-level one whose 1/k it exceeds in expectation (E A ≥ E AC / k:
+a run mean carries at least its goals' noise / k), so a 1-df A that came out tiny by chance is lifted."""
+
+
+def _conservative_variance(
+    ms: dict[str, float], g: int, s: int, k: int, t: int, crossed: bool
+) -> tuple[float, float]:
+    """(V̂, df): a variance of the mean with E V̂ = V + run/(gs), and no few-df mean square subtracted.
+
+    With the expectations of `_expected_ms`: crossed, (A + B)/(gs) + (C − AC − BC)/(gsk); seeds nested
+    in draws, A/(gs) + (C − AC)/(gsk), which is unbiased. The run-level mean squares A and B, which
+    carry the variances that matter and have g − 1 and s − 1 df, enter with positive weights; the only
+    mean squares subtracted are goal-level ones with (g − 1)(k − t) df or more, and a goal part that
+    comes out below 0 counts as 0 (which only widens V̂). The exact V also subtracts AB, with
+    (g − 1)(s − 1) df: clipping what that subtraction leaves is what narrowed the old interval. With
+    one draw its variance cannot be seen and V̂ is conditional on that draw. df 0 when a mean square it
+    needs has none (one seed against a shared arm); df at most 1 when one has 1 df.
+    A run-level mean square is never taken below its goal-level floor (`_FLOORS`).
+    """
+    df = _ms_df(g, s, k, t, crossed)
+    df |= {alias: df[target] for alias, target in _aliases(g, crossed).items()}
+    run_level = 1 / (g * s)
+    if crossed:
+        terms = [("B", run_level)] + ([("A", run_level)] if g > 1 else [])
+        goal_level = ("C", "AC", "BC") if g > 1 else ("C", "BC")
+    else:
+        terms = [("A", run_level)] if g > 1 else [("AB", run_level)]
+        goal_level = ("C", "AC")
+    if df["C"] > 0 and ms["C"] > sum(ms[m] for m in goal_level[1:]):  # a goal part below 0 counts as 0
+        terms += [(m, (1 if m == "C" else -1) / (g * s * k)) for m in goal_level]
+    parts = []
+    for m, w in terms:
+        floor = _FLOORS.get(m)  # a run-level mean square below its goal-level floor is taken at the floor
+        if w > 0 and floor is not None and df[floor] > 0 and ms[floor] / k > ms[m]:
+            parts.append((w * ms[floor] / k, df[floor]))
+        else:
+            parts.append((w * ms[m], df[m]))
+    variance = sum(x for x, _ in parts)
+    if any(d <= 0 for x, d in parts if x):
+        return variance, 0.0
+    spread = sum(x * x / d for x, d in parts if x)
+    satterthwaite = variance**2 / spread if spread > 0 else math.inf
+    # Whether the interval is readable is the design's to say, not the data's: Satterthwaite's df rises
+    # exactly when a 1-df mean square comes out small by chance, and the interval then narrows and
+    # misses (the old interval's failure at 2 seeds). A run-level mean square with 1 df caps it at 1.
+    fewest = min(df[m] for m, _ in terms[: 2 if crossed and g > 1 else 1])
+    return variance, satterthwaite if fewest >= 2 else min(satterthwaite, fewest)
+
+
 # ---------------------------------------------------------------- power
 
 
@@ -298,19 +361,26 @@ def minimum_detectable_difference(
     return (t_quantile(1 - (1 - level) / 2, df) + t_quantile(power, df)) * se
 
 
+def _design_variance(
+    components: VarianceComponents, n_draws: int, n_seeds: int, n_goals_per_task: int, n_tasks: int
+) -> tuple[float, float]:
+    """(expected V̂ in points², its df) that the analysis of such a design would present."""
+    v = {name: 0.0 if math.isnan(x) else x for name, x in components.model_dump().items()}
+    g, s, k = n_draws, n_seeds, n_goals_per_task * n_tasks
+    crossed = v["seed"] > 0 or v["seed_goal"] > 0
+    df = _ms_df(g, s, k, n_tasks, crossed)
+    ms = {m: x if df[m] > 0 else 0.0 for m, x in _expected_ms(v, g, s, k).items()}
+    variance, dof = _conservative_variance(ms, g, s, k, n_tasks, crossed)
+    if (g == 1 and (v["draw"] or v["draw_goal"])) or (s == 1 and v["seed"]):
+        dof = 0.0  # the analysis could not see that variance
+    return variance, dof
+
+
 def design_df(
     components: VarianceComponents, n_draws: int, n_seeds: int, n_goals_per_task: int, n_tasks: int
 ) -> float:
     """Satterthwaite df the analysis of such a design would have (0: it cannot estimate its variance)."""
-    v = {name: 0.0 if math.isnan(x) else x for name, x in components.model_dump().items()}
-    g, s, k = n_draws, n_seeds, n_goals_per_task * n_tasks
-    if (g == 1 and (v["draw"] or v["draw_goal"])) or (s == 1 and v["seed"]):
-        return 0.0  # the analysis could not see that variance
-    crossed = v["seed"] > 0 or v["seed_goal"] > 0
-    df = _ms_df(g, s, k, n_tasks, crossed)
-    ms = {m: x if df[m] > 0 else 0.0 for m, x in _expected_ms(v, g, s, k).items()}
-    ms |= {alias: ms[target] for alias, target in _aliases(g, crossed).items()}
-    return _satterthwaite(ms, _components(ms, g, s, k), g, s, k, n_tasks, crossed)  # as the analysis would
+    return _design_variance(components, n_draws, n_seeds, n_goals_per_task, n_tasks)[1]
 
 
 def design_mdd(
@@ -323,15 +393,17 @@ def design_mdd(
     power: float = 0.8,
     small_sample: bool = True,
 ) -> float:
-    """MDD (points) of a planned design, from variance components estimated on pilot data.
+    """MDD (points) of a planned design, from variance components estimated on pilot data: the
+    expected standard error of the interval the analysis presents (conservative, see the module
+    docstring) at its expected df.
 
     inf when the design cannot estimate its own variance (e.g. one draw while `draw` > 0).
     """
     if min(n_draws, n_seeds, n_goals_per_task, n_tasks) < 1:
         raise ValueError("a design needs at least one draw, seed, goal per task and task")
-    se = math.sqrt(components.variance_of_mean(n_draws, n_seeds, n_goals_per_task * n_tasks))
-    df = design_df(components, n_draws, n_seeds, n_goals_per_task, n_tasks) if small_sample else math.inf
-    return minimum_detectable_difference(se, df, level, power)
+    components.variance_of_mean(n_draws, n_seeds, n_goals_per_task * n_tasks)  # names unset components
+    variance, df = _design_variance(components, n_draws, n_seeds, n_goals_per_task, n_tasks)
+    return minimum_detectable_difference(math.sqrt(variance), df if small_sample else math.inf, level, power)
 
 
 def _runs_then_episodes(n_draws: int, n_seeds: int, n_goals_per_task: int) -> Any:
@@ -574,8 +646,33 @@ class _Analysis:
         return VarianceComponents(**out)
 
     def df(self) -> float:
+        """Satterthwaite df of the residual bootstrap (clipped components dropped; kept for comparison)."""
         g, s, k = self.d.shape
         return _satterthwaite(self.ms, self.comps, g, s, k, self.n_tasks, self.crossed)
+
+    def moments(self) -> tuple[float, float]:
+        """(V̂, df) of the mean, the interval the report presents (`_conservative_variance`)."""
+        g, s, k = self.d.shape
+        return _conservative_variance(self.ms, g, s, k, self.n_tasks, self.crossed)
+
+    def cluster(self) -> tuple[float, float]:
+        """(V, df) from run means alone: draw means and seed means (crossed), draw means (nested), or
+        the runs of the one draw; conditional on the goals. df 0 with one level."""
+        run = self.d.mean(2)
+        g, s = run.shape
+        if g > 1:
+            parts = [(run.mean(1).var(ddof=1) / g, g - 1)]
+            if self.crossed:
+                parts.append((run.mean(0).var(ddof=1) / s if s > 1 else 0.0, s - 1))
+        else:
+            parts = [(run[0].var(ddof=1) / s if s > 1 else 0.0, s - 1)]
+        variance = sum(x for x, _ in parts)
+        if any(d <= 0 for _, d in parts):
+            return variance, 0.0
+        spread = sum(x * x / d for x, d in parts)
+        satterthwaite = variance**2 / spread if spread > 0 else math.inf
+        fewest = min(d for _, d in parts)
+        return variance, satterthwaite if fewest >= 2 else min(satterthwaite, fewest)
 
     def bootstrap(self, n_boot: int, seed: int, method: Method) -> np.ndarray:
         """Replicates of the mean: draws, seeds, seeds within each drawn draw, goals within tasks."""
@@ -612,8 +709,20 @@ class _Estimate(BaseModel):
     df: float
 
 
+def _t_interval(mean: float, variance: float, df: float, level: float) -> _Estimate:
+    """mean ± t_df · √variance, in points (variance in proportion²)."""
+    se = math.sqrt(max(variance, 0.0))
+    half = t_quantile(1 - (1 - level) / 2, df) * se if se > 0 else 0.0
+    low, high = 100 * (mean - half), 100 * (mean + half)
+    return _Estimate(value=100 * mean, ci_low=low, ci_high=high, se=100 * se, df=df)
+
+
 def _analyse(an: _Analysis, n_boot: int, seed: int, level: float, method: Method, small: bool) -> _Estimate:
-    """Percentile CI (points); with `small`, its half-widths are stretched by t_df / z."""
+    """The interval of `method` (points). "moments": t at the Satterthwaite df (normal without
+    `small`); a bootstrap: percentile CI whose half-widths `small` stretches by t_df / z."""
+    if method == "moments":
+        variance, df = an.moments()
+        return _t_interval(an.mean, variance, df if small else math.inf, level)
     if n_boot < 2:
         raise ValueError(f"n_boot must be at least 2, not {n_boot}")
     boot = an.bootstrap(n_boot, seed, method)
@@ -642,7 +751,7 @@ def paired_difference(
     n_boot: int = 2000,
     seed: int = 0,
     level: float = 0.95,
-    method: Method = "residual",
+    method: Method = "moments",
     small_sample: bool = True,
 ) -> Comparison:
     """`arm` − `baseline` at `budget`, paired by (draw, seed, task, goal), with a bootstrap CI and MDD.
@@ -655,6 +764,7 @@ def paired_difference(
     arms, grids, goals = _prepare(episodes, [arm, baseline], budget)
     an = _Analysis(arms, grids, goals, [1, -1])
     e = _analyse(an, n_boot, seed, level, method, small_sample)
+    cluster = _t_interval(an.mean, *an.cluster(), level)
     components = an.components()
     return Comparison(
         arm=arm,
@@ -665,6 +775,9 @@ def paired_difference(
         ci_high=min(e.ci_high, 100.0),
         se=e.se,
         df=e.df,
+        cluster_low=max(cluster.ci_low, -100.0),
+        cluster_high=min(cluster.ci_high, 100.0),
+        cluster_df=cluster.df,
         mdd=minimum_detectable_difference(e.se, e.df, level),
         arm_mean=100 * float(grids[0].mean()),
         baseline_mean=100 * float(grids[1].mean()),
@@ -698,7 +811,7 @@ def success_curve(
     n_boot: int = 2000,
     seed: int = 0,
     level: float = 0.95,
-    method: Method = "residual",
+    method: Method = "moments",
     small_sample: bool = True,
 ) -> list[CurvePoint]:
     """Mean success (points) of `arm` at each budget (default: all of its budgets) with bootstrap CIs."""

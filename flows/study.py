@@ -12,7 +12,7 @@
     -> the tuning γ (tuning seed's θ_ao − θ_ft) -> α × λ chosen for CapVector (validation goals)
     -> per draw: θ_meta^d = θ_pt + α·γ^d, θ_null^d = θ_pt + α·γ_null^d -> the remaining arms × seeds
     -> every run kept at every budget (and its start, budget 0) and tested on the same test goals
-    -> preconditions (a)-(e), paired comparisons with hierarchical-bootstrap CIs, MDD -> `study` artifact
+    -> preconditions (a)-(e) and (c′), paired comparisons with t intervals (df shown), MDD -> `study` artifact
 
 The primary endpoint is the mean success over the declared budgets (the area under the
 success-vs-steps curve), and every value is chosen on validation goals at that same endpoint by a
@@ -43,6 +43,7 @@ from tasks.study_inputs import (
     ExtractionValidation,
     HeldOutLoss,
     InputKey,
+    Pretrained,
     Selection,
     StandardRun,
     TestEvaluation,
@@ -314,6 +315,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
         evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
     )
     study.record(ExtractionValidation(which="pt", draw=SHARED), pt_validation)
+    study.record(Pretrained(), pretrained)
 
     # Runs that need no choice: SFT, the auxiliary arm's grid (tuning seed).
     runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
@@ -370,7 +372,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
     if s.gate:
         gate_report = study.analyse("gate", design)
         if not study.gate_passed(gate_report):
-            emit(f"[study {cfg.name}] gate: preconditions (b), (c) not shown; CapVector's arms are not run")
+            emit(f"[study {cfg.name}] gate: preconditions (c), (c′) not shown; CapVector's arms are not run")
             return {"report": gate_report, "selections": _selections(study)}
 
     # CapVector's α × λ on the tuning γ, then each draw's θ_meta and θ_null and the remaining arms.

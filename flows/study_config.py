@@ -58,7 +58,7 @@ class StudySettings(BaseModel):
         arms: the compared arms (sft and capvector are required).
         n_boot: bootstrap resamples per interval.
         gate: run the arms that test the preconditions (SFT, auxiliary SFT, SFT from θ_ao and from θ_ft)
-            first and the CapVector arms only when (b) and (c) hold with intervals above 0; otherwise the
+            first and the CapVector arms only when (c) and (c′) hold with intervals above 0; otherwise the
             report says the question is untestable on this testbed.
     """
 

@@ -50,8 +50,40 @@ def _cell(c: Comparison | None) -> str:
         return "—"
     if not c.testable:
         return f"{c.difference:+.1f} (untestable: no variance)"
-    flag = "" if c.reliable else f" (df {c.df:.1f} < 2)"
-    return f"{c.difference:+.1f} [{c.ci_low:+.1f}, {c.ci_high:+.1f}]{flag}"
+    flag = "" if c.reliable else ", too few seeds or draws: not readable"
+    return f"{c.difference:+.1f} [{c.ci_low:+.1f}, {c.ci_high:+.1f}] (df {c.df:.1f}{flag})"
+
+
+def _components(c: Comparison) -> str:
+    """The variance components (points²) a comparison's interval rests on; "?" where not separable."""
+    values = c.components.model_dump()
+    return ", ".join(f"{k} {'?' if v != v else f'{v:.0f}'}" for k, v in values.items() if v != 0)
+
+
+def _all_comparisons(report: StudyReport) -> list[str]:
+    """Every comparison with its df, the run-level cross-check and the variance components."""
+    lines = [
+        "",
+        "## Every comparison: df, run-level cross-check, variance components",
+        "",
+        "The interval is mean ± t_df × a conservative method-of-moments standard error; the run-level "
+        "interval uses only the spread of run means (draw and seed means), conditional on the test goals. "
+        "An interval whose variance rests on a level with fewer than 3 units (2 seeds against a shared arm, "
+        "2 draws) has df ≤ 1 and is marked not readable. A CI that includes 0 shows no difference; it "
+        "does not show that the arms are equivalent (the MDD says what this design could have detected).",
+        "",
+        "| comparison | budget | difference [95 % CI] (df) | run-level [95 % CI] (df) | MDD | "
+        "components (points²) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in report.comparisons:
+        budget = "endpoint" if c.budget == ENDPOINT else str(c.budget)
+        run_level = f"[{c.cluster_low:+.1f}, {c.cluster_high:+.1f}] ({c.cluster_df:.0f})"
+        lines.append(
+            f"| {NAMES.get(c.arm, c.arm)} − {NAMES.get(c.baseline, c.baseline)} | {budget} | {_cell(c)} | "
+            f"{run_level} | {c.mdd:.1f} | {_components(c)} |"
+        )
+    return lines
 
 
 def _mean_cell(p: CurvePoint) -> str:
@@ -130,7 +162,8 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         f"goals per task × {len(report.tasks)} tasks ({', '.join(report.tasks)}), the same goals for every "
         f"checkpoint. Primary endpoint (declared in the preset): **mean success over {budgets} downstream "
         f"steps** (the area under the success-vs-steps curve); secondary: after {final}. Differences in "
-        f"points, paired by draw, seed and goal, with hierarchical-bootstrap 95 % CIs.",
+        f"points, paired by draw, seed and goal, with 95 % t intervals (df in brackets; see the last "
+        f"section for the run-level cross-check and the variance components).",
     ]
     if report.gate is not None:
         lines += ["", "## Gate: the question is untestable here", "", report.gate]
@@ -155,9 +188,10 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
     lines += ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
     for p in report.preconditions:
         outcome = VERDICT[p.holds] if p.measured else "not measured"
-        lines.append(f"| ({p.key}) | {p.claim} | {outcome} | {p.detail} |")
+        lines.append(f"| ({p.key.replace('_prime', '′')}) | {p.claim} | {outcome} | {p.detail} |")
     lines += ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
-    for arm, baseline in (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("meta_sft", "sft")):
+    others = (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("sft_from_ao", "sft"), ("meta_sft", "sft"))
+    for arm, baseline in others:
         lines.append(
             f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, ENDPOINT))} | "
             f"{_cell(_find(report, arm, baseline, final))} |"
@@ -192,6 +226,7 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
         timing = f" | {sec:.4f} | {ratio} |" if sec else " | — | — |"
         lines.append(f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + timing)
+    lines += _all_comparisons(report)
     for title, path in (figures or {}).items():
         lines += ["", f"![{title}]({path})"]
     lines += [

@@ -89,6 +89,12 @@ class StandardRun(InputKey):
     draw: int
 
 
+class Pretrained(InputKey):
+    """θ_pt, the reference of cos(γ, θ_ft − θ_pt) (precondition e)."""
+
+    kind: ClassVar[str] = "pt"
+
+
 class Selection(InputKey):
     """A value chosen on validation goals."""
 
@@ -105,6 +111,7 @@ KINDS = {
         DownstreamLoss,
         CapabilityVector,
         StandardRun,
+        Pretrained,
         Selection,
     )
 }

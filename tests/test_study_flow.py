@@ -106,7 +106,7 @@ def test_the_report_states_preconditions_comparisons_and_the_design(study_home):
     home, ids = study_home
     ws = Workspace(home)
     report = StudyReport.model_validate(ws.api.store.open_json(ids["report"]))
-    assert [p.key for p in report.preconditions] == ["a", "b", "c", "d", "e"]
+    assert [p.key for p in report.preconditions] == ["a", "b", "c", "c_prime", "d", "e"]
     assert report.gate is None and not report.design.gate  # study-smoke runs every arm
     assert len(report.convergence) == 2 * len(report.design.draws)  # θ_ft and θ_ao per draw
     pairs = {(c.arm, c.baseline, c.budget) for c in report.comparisons}
