@@ -161,15 +161,27 @@ class Comparison(BaseModel):
         return self.se > 0
 
     @property
+    def one_draw(self) -> bool:
+        """One γ draw of a γ-dependent arm: the interval is about that draw, blind to draw-to-draw spread."""
+        return "draw" in self.unestimated
+
+    @property
     def reliable(self) -> bool:
-        """An interval from fewer than 2 degrees of freedom is no interval: it is flagged, not read."""
-        return self.df >= 2
+        """Readable as a statement about the method: at least 2 df, and more than one γ draw where an
+        arm depends on γ. Anything else is flagged, not read."""
+        return self.df >= 2 and not self.one_draw
 
     def summary(self) -> str:
         where = f"{self.arm} − {self.baseline} @ {budget_name(self.budget)}"
         if not self.testable:
             return f"{where}: {self.difference:+.1f} points, untestable (the arms never differ: no variance)"
-        flag = "" if self.reliable else "; df < 2: too few seeds or draws to estimate its variance"
+        flag = (
+            ""
+            if self.reliable
+            else "; one γ draw: about that draw only"
+            if self.df >= 2
+            else "; df < 2: too few seeds or draws to estimate its variance"
+        )
         return (
             f"{where}: {self.difference:+.1f} points [{self.ci_low:+.1f}, {self.ci_high:+.1f}] "
             f"({100 * self.level:.0f} % CI, df {self.df:.1f}; run-level "

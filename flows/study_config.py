@@ -104,7 +104,7 @@ class StudySettings(BaseModel):
         if self.gate:
             lacking = sorted(set(GATE_ARMS) - set(self.arms))
             if lacking:
-                raise ValueError(f"study.gate needs arms {lacking}: preconditions c and c′ are tested with them")
+                raise ValueError(f"study.gate needs arms {lacking}: they test preconditions c and c′")
         return self
 
 

@@ -50,7 +50,13 @@ def _cell(c: Comparison | None) -> str:
         return "—"
     if not c.testable:
         return f"{c.difference:+.1f} (untestable: no variance)"
-    flag = "" if c.reliable else ", too few seeds or draws: not readable"
+    flag = (
+        ""
+        if c.reliable
+        else ", one γ draw: not readable as the method's effect"
+        if c.one_draw and c.df >= 2
+        else ", too few seeds or draws: not readable"
+    )
     return f"{c.difference:+.1f} [{c.ci_low:+.1f}, {c.ci_high:+.1f}] (df {c.df:.1f}{flag})"
 
 
