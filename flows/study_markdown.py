@@ -6,8 +6,10 @@ arm, read from its checkpoints' records (timings are never part of the analysed 
 
 from __future__ import annotations
 
+import math
 import statistics
 
+from artifacts.scores import read_episodes
 from capvector_stats.paired_differences import ENDPOINT, Comparison, CurvePoint
 from tasks.study_analysis import StudyReport
 from tasks.workspace import Workspace
@@ -157,6 +159,33 @@ def _sizing(report: StudyReport, key: str, c: Comparison | None) -> list[str]:
     return lines
 
 
+def _grids(workspace: Workspace, report: StudyReport) -> list[str]:
+    """Every selection's whole grid: each cell's validation success and its standard error over the
+    validation goals (a goal's success averaged over the cell's budgets), the chosen cell in bold."""
+    lines = []
+    for sel in report.selections.values():
+        doc = workspace.api.store.open_json(sel)
+        params = doc["parameters"]
+        ids = [e for row in doc["grid"] for e in row["evaluation_ids"]]
+        episodes = read_episodes(workspace.api, ids).set_index("evaluation_id")
+        lines += [
+            "",
+            f"Grid of {doc['name']} ({len(doc['grid'])} cells; validation success %, ± its standard error "
+            "over goals):",
+            "",
+            "| " + " | ".join(params) + " | validation success | ± SE | goals |",
+            "|" + "---|" * (len(params) + 3),
+        ]
+        for row in doc["grid"]:
+            per_goal = episodes.loc[row["evaluation_ids"]].groupby(["task", "seed"])["success"].mean()
+            se = 100 * per_goal.std(ddof=1) / math.sqrt(len(per_goal)) if len(per_goal) > 1 else math.nan
+            best = all(row[p] == doc["best"][p] for p in params)
+            mark = "**" if best else ""
+            cells = " | ".join(f"{mark}{row[p]:g}{mark}" for p in params)
+            lines.append(f"| {cells} | {100 * row['validation_success']:.1f} | {se:.1f} | {len(per_goal)} |")
+    return lines
+
+
 def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str, str] | None = None) -> str:
     """The report; `figures` maps a figure's title to its path relative to the Markdown file."""
     d = report.design
@@ -245,6 +274,7 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
     ]
     for name, sel in report.selections.items():
         lines.append(f"- {name}: `{sel[:12]}` (`capvector lineage {sel[:12]}`)")
+    lines += _grids(workspace, report)
     edge = d.at_edge()
     if edge:
         lines.append(
