@@ -68,9 +68,13 @@ def known_objectives() -> list[str]:
 
 
 def build_objective(
-    name: str, features: Mapping[str, FeatureSpec], params: Mapping | None = None
+    name: str, features: Mapping[str, FeatureSpec], params: Mapping | None = None, seed: int | None = None
 ) -> AuxObjective:
-    """Instantiate a registered objective for a policy exposing `features` (`policy.feature_specs()`)."""
+    """Instantiate a registered objective for a policy exposing `features` (`policy.feature_specs()`).
+
+    `seed`: its heads are initialised from a generator of their own seeded with it, and torch's global
+    RNG is left as it was (so θ_ao's run draws what θ_ft's does); None: from the global RNG.
+    """
     cls = get_objective(name)
     missing = [f for f in cls.feature_names if f not in features]
     if missing:
@@ -78,7 +82,14 @@ def build_objective(
             f"auxiliary objective {name!r} needs policy feature(s) {missing}; this policy exposes "
             f"{sorted(features)}"
         )
-    return cls(features, cls.Params.model_validate(dict(params or {})))
+    validated = cls.Params.model_validate(dict(params or {}))
+    if seed is None:
+        return cls(features, validated)
+    # The heads are built on the CPU with torch's default initialisers, which draw from the global CPU
+    # generator: it is forked (saved, seeded, restored), the heads' own generator for the moment.
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return cls(features, validated)
 
 
 class AuxObjective(nn.Module, abc.ABC):

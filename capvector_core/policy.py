@@ -6,7 +6,9 @@ depends on its architecture, so the trainer, the vector commands, the adapters a
 work on any registered type unchanged:
 
 - its batches (`make_batcher`: dataset -> index -> batch dict) and normalizer (`fit_normalizer`);
-- its loss (`compute_loss`: batch -> `PolicyOutput` with the total, named terms and features);
+- its loss (`compute_loss`: batch -> `PolicyOutput` with the total, named terms and features), and
+  the randomness in it (noise, times, dropout) drawn from `generator` (`set_generator`: the trainer
+  gives each run its own, seeded from the run's seed; None, the default, is torch's global RNG);
 - named features for auxiliary objectives (`feature_specs`; e.g. ``obs_tokens``: per-layer hidden
   states at the observation tokens, ``tokens``: per-layer hidden states at every token);
 - inference (`predict_action_chunk`: observations in env units + task names -> (B, K, A) actions).
@@ -102,6 +104,20 @@ class Policy(nn.Module, abc.ABC):
     @property
     def device(self) -> torch.device:
         return next(self.buffers(), next(self.parameters())).device
+
+    # ------------------------------------------------------------------ randomness
+    @property
+    def generator(self) -> torch.Generator | None:
+        """Where `compute_loss` draws its randomness (noise, times, dropout masks); None: torch's
+        global RNG. A policy whose loss is random must draw through it (`torch.randn(...,
+        generator=self.generator)`), so that nothing else drawing from the global RNG (an auxiliary
+        head's initialisation, a callback) changes the draws of a run."""
+        return self.__dict__.get("_generator")
+
+    def set_generator(self, generator: torch.Generator | None) -> None:
+        """Draw the loss's randomness from `generator` (on the policy's device), or torch's global RNG
+        (None). The trainer sets one per run and saves its state in each checkpoint."""
+        self.__dict__["_generator"] = generator
 
     # ------------------------------------------------------------------ data
     @abc.abstractmethod

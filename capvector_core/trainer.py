@@ -3,13 +3,24 @@
 The policy owns its batches and its loss (`capvector_core.policy`); this module keeps only the loop:
 schedule, clipping, non-finite guards, checkpoints, exact resume and the extra losses.
 
+Randomness: three streams per run, all from its seed, none consuming another's draws: the batch
+indices (a generator seeded with the seed), the policy's own randomness in its loss (flow matching's
+noise and times, dropout masks: `Policy.generator`, a generator on the training device seeded from the
+seed for that purpose alone) and the auxiliary heads' initialisation (a generator of their own, seeded
+with the seed; torch's global RNG is left as it was). So θ_ao and θ_ft, two runs from the same start
+with the same seed, train on the same batches with the same noise whichever objective one adds; with
+the objective's weight 0 they are the same weights, bit for bit. torch's global RNG is still seeded
+with the seed (for whatever else draws from it: a plugin policy's loss, adapter dropout).
+
 Exact resume: every checkpoint holds the policy and aux-head weights (safetensors), the optimizer
-state, the batch-sampling generator and torch RNG states, and the step. The learning rate is a pure
-function of the step (linear warm-up then cosine to ``min_lr_ratio``), so it needs no state of its own.
-``train`` resumes from the newest complete checkpoint in ``run_dir``; a run killed at any point and
-rerun ends with the same weights, bit for bit, as an uninterrupted one with the same seed. Only the
-same run resumes: a checkpoint records its run's origin (the dataset's content hash and a digest of the
-starting weights) beside its TrainConfig, and one from other data or another start is an error.
+state, the batch and policy generators' states and torch's global RNG states, and the step. The
+learning rate is a pure function of the step (linear warm-up then cosine to ``min_lr_ratio``), so it
+needs no state of its own. ``train`` resumes from the newest complete checkpoint in ``run_dir``; a run
+killed at any point and rerun ends with the same weights, bit for bit, as an uninterrupted one with the
+same seed. A checkpoint without the policy generator's state (written before it had one) is passed
+over. Only the same run resumes: a checkpoint records its run's origin (the dataset's content hash and
+a digest of the starting weights) beside its TrainConfig, and one from other data or another start is
+an error.
 
 Lost files are recomputed, never a dead end: a checkpoint whose files are missing or unreadable, or
 one past a kept snapshot that is gone, is passed over for the newest older one that is intact (a
@@ -36,6 +47,7 @@ import re
 import shutil
 import time
 from collections.abc import Callable, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -62,7 +74,12 @@ class AuxConfig(BaseModel):
         "`spatial_depth` (pixels: each vision token with its patch's 3D point) or `dynamics` (predict "
         "the privileged state a few steps ahead)"
     )
-    weight: float = Field(0.5, ge=0.0, description="loss weight (Spatial Forcing's default is 0.5)")
+    weight: float = Field(
+        0.5,
+        ge=0.0,
+        description="loss weight (Spatial Forcing's default is 0.5); 0: computed and logged but trains "
+        "nothing (the run is plain SFT's, bit for bit)",
+    )
     params: dict[str, Any] = Field(
         default_factory=dict,
         description="the objective's own settings, checked by its Params model (e.g. dynamics: horizon, "
@@ -103,8 +120,9 @@ class TrainConfig(BaseModel):
     )
     seed: int = Field(
         0,
-        description="seed of initialisation (from scratch, adapters), batch order and dropout; the pipeline "
-        "replaces it downstream by each of `seeds` (a study also in extraction, by its draws)",
+        description="seed of initialisation (from scratch, adapters, auxiliary heads), batch order and the "
+        "policy's randomness (dropout, flow matching's noise and times), each a stream of its own; the "
+        "pipeline replaces it downstream by each of `seeds` (a study also in extraction, by its draws)",
     )
     checkpoint_every: Annotated[
         int, ExecutionOnly("resume is exact: the weights are the same whenever checkpoints are written")
@@ -232,9 +250,10 @@ def _fsync_dir(path: Path) -> None:
 class _Run:
     """State of one training invocation (kept together so checkpointing sees all of it)."""
 
-    def __init__(self, policy, objective, optimizer, generator, config, run_dir, device, origin):
+    def __init__(self, policy, objective, optimizer, generator, sampling, config, run_dir, device, origin):
         self.policy, self.objective, self.optimizer = policy, objective, optimizer
         self.generator, self.config, self.run_dir, self.device = generator, config, run_dir, device
+        self.sampling = sampling  # the policy's own randomness (Policy.generator), on `device`
         self.origin = origin
         self.step = 0
         self.train_seconds = 0.0
@@ -258,6 +277,8 @@ class _Run:
             "train_seconds": self.train_seconds,
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
+            "sampling": self.sampling.get_state(),
+            "sampling_device": self.sampling.device.type,
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
         }
@@ -305,10 +326,13 @@ class _Run:
 
     def read(self, path: Path) -> dict[str, Any]:
         """Every file of a checkpoint, read before anything is changed (raises if one is lost)."""
+        state = torch.load(path / "trainer_state.pt", weights_only=True, map_location="cpu")
+        if "sampling" not in state:  # its policy drew from the global RNG: cannot be continued exactly
+            raise KeyError(f"{path.name} has no policy generator state (written before there was one)")
         return {
             "policy": load_file(str(path / "policy.safetensors")),
             "aux": load_file(str(path / "aux.safetensors")) if self.objective is not None else None,
-            "state": torch.load(path / "trainer_state.pt", weights_only=True, map_location="cpu"),
+            "state": state,
         }
 
     def load(self, path: Path, read: dict[str, Any] | None = None) -> None:
@@ -322,6 +346,11 @@ class _Run:
         self.check_origin(path, state)
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
+        if state["sampling_device"] == self.sampling.device.type:
+            self.sampling.set_state(state["sampling"])
+        else:  # another kind of device, another kind of generator: the same run, not the same draws
+            seed = _stream_seed(self.config.seed, f"policy/resumed at {int(state['step'])}")
+            self.sampling.manual_seed(seed)
         torch.set_rng_state(state["torch_rng"])
         if state["cuda_rng"] and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda_rng"])
@@ -360,6 +389,33 @@ class _Run:
         if chosen in snapshot_at and not snapshot_path(self.run_dir, chosen).is_file():
             save_policy(self.policy, snapshot_path(self.run_dir, chosen))  # the weights at that step
         return "; ".join(passed)
+
+
+def _stream_seed(seed: int, purpose: str) -> int:
+    """The seed of one of a run's random streams: a function of the run's seed and the purpose, so
+    the streams are unrelated to each other (a generator seeded with `seed` itself draws the batches)."""
+    digest = hashlib.sha256(f"capvector.trainer/{purpose}/{seed}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") >> 1  # 63 bits: any torch generator takes it
+
+
+@contextmanager
+def _drawing_from(policy: Policy, generator: torch.Generator):
+    """The policy draws its loss's randomness from `generator` inside; as before it, after."""
+    previous = policy.generator
+    policy.set_generator(generator)
+    try:
+        yield
+    finally:
+        policy.set_generator(previous)
+
+
+@torch.no_grad()
+def _weighted_zero(objective: AuxObjective, features: Mapping, batch: Mapping) -> torch.Tensor:
+    """An objective of weight 0: its term (0 × its loss, non-finite if that is) outside the graph. So
+    no parameter gets an all-zero gradient from it (AdamW would still decay such a parameter, e.g. the
+    backbone layers only an objective reads, and clipping would count the heads' zeros), and the run
+    is plain SFT's, bit for bit."""
+    return 0.0 * objective(features, batch)
 
 
 def _cpu_state(module: nn.Module) -> dict[str, torch.Tensor]:
@@ -413,11 +469,13 @@ def train(
         torch.set_num_threads(config.num_threads)
     device = resolve_device(config.device)
     execution = run_environment(device)
-    torch.manual_seed(config.seed)
+    torch.manual_seed(config.seed)  # for what draws from the global RNG (the policy draws from its own)
 
     objective = None
-    if config.aux is not None:
-        objective = build_objective(config.aux.name, policy.feature_specs(), config.aux.params)
+    if config.aux is not None:  # its heads from a generator of their own: the global RNG is left as is
+        objective = build_objective(
+            config.aux.name, policy.feature_specs(), config.aux.params, seed=config.seed
+        )
     reserved = {"loss", "action"} | ({objective.name} if objective else set())
     clash = sorted(reserved & set(extra_losses))
     if clash:
@@ -445,8 +503,9 @@ def train(
         params += list(objective.parameters())
     optimizer = torch.optim.AdamW(_param_groups(params, config.weight_decay), lr=config.lr)
     generator = torch.Generator().manual_seed(config.seed)
+    sampling = torch.Generator(device=device).manual_seed(_stream_seed(config.seed, "policy"))
     origin = {"data": str(getattr(dataset, "content_hash", None)), "start": _weights_digest(policy)}
-    run = _Run(policy, objective, optimizer, generator, config, run_dir, device, origin)
+    run = _Run(policy, objective, optimizer, generator, sampling, config, run_dir, device, origin)
 
     curve_path = run_dir / "loss_curve.jsonl"
     passed_over = run.resume(snapshot_at, curve_path)
@@ -462,7 +521,7 @@ def train(
     if progress is not None:
         how = "resumed" if run.step else "started"
         progress(run.step, config.steps, f"{how} (passed over {passed_over})" if passed_over else how)
-    with open(curve_path, "a") as curve:
+    with open(curve_path, "a") as curve, _drawing_from(policy, sampling):
         while run.step < config.steps:
             step = run.step
             lr = lr_at(step, config)
@@ -471,8 +530,10 @@ def train(
             batch = make_batch(torch.randint(n, (config.batch_size,), generator=generator))
             out = policy.compute_loss(batch, features)
             terms = dict(out.terms)
-            if objective is not None:
+            if objective is not None and config.aux.weight:
                 terms[objective.name] = config.aux.weight * objective(out.features, batch)
+            elif objective is not None:  # weight 0: logged, not differentiated (see _weighted_zero)
+                terms[objective.name] = _weighted_zero(objective, out.features, batch)
             for name, fn in extra_losses.items():
                 terms[name] = fn(policy)
             if not names:

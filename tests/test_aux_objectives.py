@@ -97,3 +97,22 @@ def test_spatial_target_is_fixed():
     x = torch.randn(4, 9)
     assert torch.equal(a.target(x), b.target(x))
     assert not any("fourier" in n for n, _ in a.named_parameters())
+
+
+@pytest.mark.parametrize("name", ["spatial", "dynamics"])
+def test_heads_built_with_a_seed_leave_the_global_rng_alone(name):
+    """With a seed (the trainer passes the run's), an objective's heads come from a generator of their
+    own: the same heads for the same seed, and torch's global RNG draws next what it would have."""
+    specs = features()
+    torch.manual_seed(11)
+    expected = torch.rand(3)
+    torch.manual_seed(11)
+    a = build_objective(name, specs, seed=4)
+    assert torch.equal(torch.rand(3), expected)
+    b, c = build_objective(name, specs, seed=4), build_objective(name, specs, seed=5)
+    sa, sb, sc = a.state_dict(), b.state_dict(), c.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert not all(torch.equal(sa[k], sc[k]) for k in sa)
+    torch.manual_seed(4)  # the seed's stream, as before: the heads the trainer built from it then
+    d = build_objective(name, specs)
+    assert all(torch.equal(v, d.state_dict()[k]) for k, v in sa.items())

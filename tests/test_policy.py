@@ -214,3 +214,40 @@ def test_saved_file_is_byte_identical_across_processes(tmp_path):
         subprocess.run([sys.executable, "-c", script, str(out)], check=True)
         digests.add(hashlib.sha256(out.read_bytes()).hexdigest())
     assert len(digests) == 1
+
+
+@pytest.mark.parametrize("policy_type,dropout", [("flow", 0.0), ("flow", 0.2), ("l1_chunk", 0.2)])
+def test_the_loss_draws_from_the_policy_generator_not_the_global_rng(policy_type, dropout):
+    """Flow matching's noise and times and the dropout masks come from `policy.generator` when one is
+    set (the trainer sets one per run), so whatever else draws from torch's global RNG in between
+    leaves the loss as it is; without one they come from the global RNG, as before."""
+    torch.manual_seed(0)
+    policy = fitted(build_policy({"type": policy_type, "dropout": dropout, **TINY}, "cpu")).train()
+    b = batch(policy.config, 8)
+
+    def loss(generator_seed, global_seed):
+        policy.set_generator(
+            None if generator_seed is None else torch.Generator().manual_seed(generator_seed)
+        )
+        torch.manual_seed(global_seed)
+        return policy.compute_loss(b).loss
+
+    assert policy.generator is None  # the default: torch's global RNG
+    assert torch.equal(loss(5, global_seed=1), loss(5, global_seed=2))
+    assert not torch.equal(loss(5, global_seed=1), loss(6, global_seed=1))
+    assert torch.equal(loss(None, global_seed=1), loss(None, global_seed=1))
+    assert not torch.equal(loss(None, global_seed=1), loss(None, global_seed=2))
+    policy.set_generator(None)
+    assert policy.generator is None
+
+
+def test_flow_without_a_generator_draws_as_torch_distributions_beta_does():
+    """The global-RNG path (held-out losses) draws τ and ε exactly as before policies had generators."""
+    torch.manual_seed(0)
+    policy = build_policy({"type": "flow", **TINY}, "cpu")
+    actions = torch.zeros(16, TINY["chunk_size"], 4)
+    torch.manual_seed(3)
+    t, noise = policy.sample_time_and_noise(actions)
+    torch.manual_seed(3)
+    beta = torch.distributions.Beta(torch.tensor(1.5), torch.tensor(1.0)).sample((16,))
+    assert torch.equal(t, beta * 0.999 + 0.001) and torch.equal(noise, torch.randn_like(actions))

@@ -89,6 +89,7 @@ def test_loss_decreases_and_outputs_written(tmp_path, policy_type):
     assert rows[-1]["step"] == 120 and {"loss", "action", "lr", "time", "grad_norm"} <= set(rows[0])
     # flow matching's loss keeps the noise's irreducible variance: it falls less far
     assert rows[-1]["loss"] < {"l1_chunk": 0.6, "flow": 0.8}[policy_type] * rows[0]["loss"]
+    assert policy.generator is None  # the run's generator was the run's: after it, the global RNG again
     loaded = load_policy(result.weights_path, device="cpu")
     assert bool(loaded.normalizer.fitted)
     for k, v in policy.state_dict().items():
@@ -170,6 +171,33 @@ def test_pixels_path_trains(tmp_path):
     with pytest.raises(ValueError, match="images are"):
         bigger = L1ChunkConfig(obs_mode="pixels", image_size=32, stem_channels=[8, 16], **TINY)
         train(L1ChunkPolicy(bigger), make_dataset("pixels"), quick(), tmp_path / "x")
+
+
+def _trained(policy_type: str, dropout: float, aux: AuxConfig | None, run_dir: Path) -> dict:
+    torch.manual_seed(0)  # θ_pt: the same start for both runs
+    policy = build_policy({"type": policy_type, "dropout": dropout, **TINY}, "cpu")
+    result = train(policy, make_dataset(), quick(steps=8, seed=3, aux=aux), run_dir)
+    return {"weights": policy.state_dict(), "curve": curve(result.loss_curve_path)}
+
+
+@pytest.mark.parametrize("policy_type", ["l1_chunk", "flow"])
+@pytest.mark.parametrize("dropout", [0.0, 0.1])
+def test_an_objective_of_weight_zero_gives_theta_ft_bit_for_bit(tmp_path, policy_type, dropout):
+    """γ = θ_ao − θ_ft needs the two runs to differ by the objective alone: same start, seed, batches,
+    and the same draws of the policy's own randomness (flow matching's noise and times, dropout), which
+    come from the run's generator, not from torch's global RNG, which the objective's heads' initialisation
+    used to consume. With the objective present but weighted 0, θ_ao is θ_ft bit for bit (the flow
+    backbone's θ_ao drew other noise and times before, and every backbone's other dropout masks)."""
+    ft = _trained(policy_type, dropout, None, tmp_path / "ft")
+    aux = AuxConfig(name="dynamics", weight=0.0, params={"horizon": 3})
+    ao = _trained(policy_type, dropout, aux, tmp_path / "ao")
+    assert ao["weights"].keys() == ft["weights"].keys()
+    differ = [k for k, v in ft["weights"].items() if not torch.equal(v, ao["weights"][k])]
+    assert not differ, differ
+    assert [r["action"] for r in ao["curve"]] == [r["action"] for r in ft["curve"]]
+    assert all(r["dynamics"] == 0.0 for r in ao["curve"])  # logged (as weight × loss), not trained
+    weighted = _trained(policy_type, dropout, aux.model_copy(update={"weight": 0.5}), tmp_path / "w")
+    assert any(not torch.equal(v, weighted["weights"][k]) for k, v in ft["weights"].items())
 
 
 RUNNER = textwrap.dedent(
@@ -285,11 +313,11 @@ def _as_if_killed_after(run_dir: Path, step: int) -> None:
         (run_dir / name).unlink()
 
 
-@pytest.mark.parametrize("lost", ["snapshot", "trainer_state", "loss_curve"])
+@pytest.mark.parametrize("lost", ["snapshot", "trainer_state", "loss_curve", "policy_generator"])
 def test_a_resume_recomputes_what_was_lost_from_the_run_dir(tmp_path, lost):
-    """A file removed from an interrupted run dir (a snapshot, a checkpoint's state, the loss curve) is
-    recomputed from the newest intact checkpoint before it, or from the start: never a dead end, and the
-    result is bit for bit an uninterrupted run's."""
+    """A file removed from an interrupted run dir (a snapshot, a checkpoint's state or the policy
+    generator's state in it, the loss curve) is recomputed from the newest intact checkpoint before it,
+    or from the start: never a dead end, and the result is bit for bit an uninterrupted run's."""
     config = quick(steps=12, checkpoint_every=4, keep_checkpoints=10, snapshot_steps=[4, 8])
 
     def fresh():
@@ -304,6 +332,11 @@ def test_a_resume_recomputes_what_was_lost_from_the_run_dir(tmp_path, lost):
         (run_dir / "snapshots" / "step_00000004.safetensors").unlink()
     elif lost == "trainer_state":
         (run_dir / "checkpoints" / "step_00000008" / "trainer_state.pt").unlink()
+    elif lost == "policy_generator":  # a checkpoint from before the policy drew from its own generator
+        state_path = run_dir / "checkpoints" / "step_00000008" / "trainer_state.pt"
+        state = torch.load(state_path, weights_only=True)
+        del state["sampling"], state["sampling_device"]
+        torch.save(state, state_path)
     else:
         (run_dir / "loss_curve.jsonl").unlink()
     lines: list[str] = []

@@ -7,6 +7,8 @@ their own keys/values and to the prefix's keys/values computed by backbone layer
 
 Training (π0's conditional flow matching, in normalized action space): τ ~ Beta(1.5, 1) scaled to
 [0.001, 1], ε ~ N(0, I), x_τ = τ·ε + (1 − τ)·a, target velocity u = ε − a, loss = MSE(v_θ(x_τ, τ), u).
+τ, ε and dropout masks are drawn from the policy's `generator` (the trainer's per-run one), so an
+auxiliary head's initialisation or anything else using torch's global RNG leaves them unchanged.
 Inference integrates dx/dτ = v from τ = 1 (noise) to 0 with `integration_steps` Euler steps; the
 prefix keys/values are computed once per call. The noise is one fixed draw (`inference_seed`), so an
 evaluation is deterministic and does not depend on how episodes are batched.
@@ -88,7 +90,7 @@ class FlowPolicy(TokenPolicy):
         hidden, kv = [], []
         for layer in self.backbone.layers:
             kv.append(layer.attn.keys_values(layer.norm1(x)))
-            x = layer(x, mask)
+            x = layer(x, mask, generator=self.generator)
             hidden.append(x)
         return hidden, kv, mask
 
@@ -103,20 +105,29 @@ class FlowPolicy(TokenPolicy):
         a = expert.time_mlp_out(F.silu(a)) + expert.position
         full_mask = torch.cat([mask, torch.ones(a.shape[:2], dtype=torch.bool, device=a.device)], dim=1)
         for layer, prefix_kv in zip(expert.layers, kv, strict=True):
-            a = layer(a, full_mask, prefix_kv)
+            a = layer(a, full_mask, prefix_kv, generator=self.generator)
         return self.action_head.proj(expert.norm(a))
 
     def compute_loss(self, batch: Batch, features: Collection[str] = ()) -> PolicyOutput:
         hidden, kv, mask = self.encode_prefix(batch)
         actions = self.normalizer.normalize("action", batch["actions"])
-        b = actions.shape[0]
-        a, bb = self.config.time_beta
-        beta = torch.distributions.Beta(torch.tensor(a), torch.tensor(bb)).sample((b,)).to(actions.device)
-        t = beta * 0.999 + 0.001
-        noise = torch.randn_like(actions)
+        t, noise = self.sample_time_and_noise(actions)
         x_t = t[:, None, None] * noise + (1.0 - t[:, None, None]) * actions
         flow = F.mse_loss(self.velocity(x_t, t, kv, mask), noise - actions)
         return PolicyOutput(flow, {"action": flow}, self.prefix_features(hidden, features))
+
+    def sample_time_and_noise(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Training's τ (B,) and ε (like `actions`), from `self.generator` (on the policy's device);
+        without one, from torch's global RNG (τ on the CPU, ε on the actions' device)."""
+        generator = self.generator
+        device = generator.device if generator is not None else torch.device("cpu")
+        concentration = torch.tensor(self.config.time_beta, device=device)  # [a, b]: Beta(a, b)
+        # Beta(a, b) = the first coordinate of Dirichlet([a, b]): torch.distributions.Beta's own
+        # sampler, which takes no generator
+        beta = torch._sample_dirichlet(concentration.expand(actions.shape[0], 2), generator=generator)
+        t = beta[:, 0].to(actions.device) * 0.999 + 0.001
+        noise = torch.randn(actions.shape, generator=generator, dtype=actions.dtype, device=actions.device)
+        return t, noise
 
     def sample_actions(self, batch: Batch) -> torch.Tensor:
         _, kv, mask = self.encode_prefix(batch)

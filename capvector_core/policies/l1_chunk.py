@@ -46,7 +46,7 @@ class L1ChunkPolicy(TokenPolicy):
         mask = torch.cat([mask, torch.ones(b, queries.shape[1], dtype=torch.bool, device=x.device)], dim=1)
         hidden = []
         for layer in self.backbone.layers:
-            x = layer(x, mask)
+            x = layer(x, mask, generator=self.generator)
             hidden.append(x)
         actions = self.action_head.proj(self.backbone.norm(x[:, -self.config.chunk_size :]))
         return actions, hidden

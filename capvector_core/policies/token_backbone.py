@@ -177,6 +177,16 @@ class Normalizer(nn.Module):
         return x * getattr(self, f"{key}_std") + getattr(self, f"{key}_mean")
 
 
+def dropout(x: torch.Tensor, p: float, training: bool, generator: torch.Generator | None) -> torch.Tensor:
+    """Inverted dropout whose mask is drawn from `generator` (None: torch's global RNG, `F.dropout`)."""
+    if not training or p == 0.0:
+        return x
+    if generator is None:
+        return F.dropout(x, p, True)
+    keep = torch.empty_like(x).bernoulli_(1.0 - p, generator=generator)
+    return x * keep / (1.0 - p)
+
+
 def split_heads(y: torch.Tensor, n_heads: int) -> torch.Tensor:
     b, t, d = y.shape
     return y.view(b, t, n_heads, d // n_heads).transpose(1, 2)
@@ -207,17 +217,21 @@ class Attention(nn.Module):
         x: torch.Tensor,
         key_mask: torch.Tensor,
         kv_prefix: tuple[torch.Tensor, torch.Tensor] | None = None,
+        generator: torch.Generator | None = None,
     ) -> torch.Tensor:
         k, v = self.keys_values(x)
         if kv_prefix is not None:
             k, v = torch.cat([kv_prefix[0], k], dim=2), torch.cat([kv_prefix[1], v], dim=2)
-        out = F.scaled_dot_product_attention(
-            split_heads(self.q_proj(x), self.n_heads),
-            k,
-            v,
-            attn_mask=key_mask[:, None, None, :],
-            dropout_p=self.dropout if self.training else 0.0,
-        )
+        q = split_heads(self.q_proj(x), self.n_heads)
+        mask = key_mask[:, None, None, :]
+        if self.training and self.dropout > 0.0 and generator is not None:
+            # SDPA draws its dropout mask from the global RNG: written out to draw from `generator`
+            scores = (q @ k.transpose(-2, -1)) * q.shape[-1] ** -0.5
+            weights = scores.masked_fill(~mask, float("-inf")).softmax(-1)
+            out = dropout(weights, self.dropout, True, generator) @ v
+        else:
+            p = self.dropout if self.training else 0.0
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
         return self.o_proj(merge_heads(out))
 
 
@@ -228,8 +242,8 @@ class MLP(nn.Module):
         self.fc2 = nn.Linear(hidden, d_model)
         self.drop = nn.Dropout(dropout)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.drop(self.fc2(F.gelu(self.fc1(x))))
+    def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        return dropout(self.fc2(F.gelu(self.fc1(x))), self.drop.p, self.training, generator)
 
 
 class Block(nn.Module):
@@ -242,9 +256,11 @@ class Block(nn.Module):
         self.mlp = MLP(d, d * config.ffn_mult, config.dropout)
         self.drop = nn.Dropout(config.dropout)
 
-    def forward(self, x, key_mask, kv_prefix=None) -> torch.Tensor:
-        x = x + self.drop(self.attn(self.norm1(x), key_mask, kv_prefix))
-        return x + self.mlp(self.norm2(x))
+    def forward(self, x, key_mask, kv_prefix=None, generator: torch.Generator | None = None) -> torch.Tensor:
+        """`generator`: where the dropout masks are drawn from (None: torch's global RNG)."""
+        attended = self.attn(self.norm1(x), key_mask, kv_prefix, generator)
+        x = x + dropout(attended, self.drop.p, self.training, generator)
+        return x + self.mlp(self.norm2(x), generator)
 
 
 class Backbone(nn.Module):
