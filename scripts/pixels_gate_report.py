@@ -194,7 +194,8 @@ def draw(data: dict, path: Path) -> None:
 TEMPLATE = """# The GPU gate runs: no positive control (eight runs, all reported)
 
 Issue 26 asks for a testbed where the auxiliary objective helps before asking whether γ carries that
-help. The state testbed with random-feature observations gave +4.1 points (docs/studies/study_control_10000.md).
+help. The state testbed with random-feature observations gave +4.1 points
+(docs/studies/study_control_10000.md).
 The faithful analogue of Spatial Forcing is pixels with the `spatial_depth` objective (each vision
 token regresses its own image patch's back-projected world xyz from MuJoCo's depth render). It is
 GPU-sized, so it ran when a GPU machine was lent (one NVIDIA H200 with 16 CPU cores, 15 minutes of
@@ -202,7 +203,8 @@ device time per session, three sessions). The machine has no Prefect or DuckDB, 
 `scripts/pixels_gate_gpu.py`, which calls `capvector_core` directly: the same demos, policies, trainer,
 objectives and evaluation as the flows, but without the catalogue or cache. Training ran on the GPU.
 Rollouts ran in a pool of 14 CPU processes with EGL rendering, started as each checkpoint was written.
-Every episode came back as a record (`docs/studies/data/pixels_gpu_*.jsonl.gz`). This page is computed from those
+Every episode came back as a record (`docs/studies/data/pixels_gpu_*.jsonl.gz`).
+This page is computed from those
 records by `scripts/pixels_gate_report.py`.
 
 **Answer: on pixels, and on the state testbed with the larger policy (runs 7-8), the auxiliary

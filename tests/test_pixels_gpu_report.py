@@ -1,5 +1,5 @@
-"""docs/studies/study_pixels_gpu.md is what scripts/pixels_gate_report.py makes of the committed episode records:
-every table and the three headline differences are computed from them (the prose around them quotes
+"""docs/studies/study_pixels_gpu.md is what scripts/pixels_gate_report.py makes of the committed episode
+records: every table and the three headline differences are computed from them (the prose around them quotes
 numbers read off those tables)."""
 
 from pathlib import Path
