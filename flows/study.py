@@ -198,44 +198,49 @@ class _PlannedStudy(_Study):
         return True
 
 
+def _seeded(label: str, seed: int, tunes: list[int]) -> str:
+    """A tuning step's label, naming its seed where there are several."""
+    return f"{label} seed {seed}" if len(tunes) > 1 else label
+
+
 def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[str, Any]:
     """The extraction lr for θ_ft and θ_ao's auxiliary weight, each chosen on D_ext validation goals
-    (ties: lower held-out action loss) from runs at the tuning seed; returns the choices and the
-    tuning seed's θ_ft and θ_ao (the tuning γ's ends)."""
-    cfg, s, submit, tune = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seed
+    from runs at every tuning seed (a cell's score: its mean over them; ties: the first tuning seed's
+    lower held-out action loss); returns the choices and each tuning seed's θ_ft and θ_ao (the tuning
+    γs' ends)."""
+    cfg, s, submit, tunes = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seeds
     inputs = {"data": data["extraction"], "init": pretrained}
 
-    def grid(what: str, values: dict[Any, Any], extra: dict[str, Any]) -> tuple[dict, list, list]:
+    def grid(what: str, configs: dict[Any, dict[int, Any]], extra: dict[str, Any]) -> tuple[dict, list, list]:
         runs, cells, losses = {}, [], []
-        for value, config in values.items():
-            runs[value] = submit(train_task, f"tune extraction {what}={value}", {**inputs, **extra}, config)
-            checkpoint = {"checkpoint": runs[value]}
-            cells.append(
-                (value, [submit(evaluate_task, f"validate {what}={value}", checkpoint, study.validation_ext)])
-            )
-            losses.append(
-                submit(
-                    held_out_loss_task,
-                    f"held-out loss {what}={value}",
-                    {**checkpoint, "data": data["heldout"]},
-                    {},
-                )
-            )
+        for value, by_seed in configs.items():
+            evaluations = []
+            for t, config in by_seed.items():
+                label = _seeded(f"{what}={value}", t, tunes)
+                runs[value, t] = submit(train_task, f"tune extraction {label}", {**inputs, **extra}, config)
+                checkpoint = {"checkpoint": runs[value, t]}
+                validation = submit(evaluate_task, f"validate {label}", checkpoint, study.validation_ext)
+                evaluations.append(validation)
+                if t == tunes[0]:
+                    held_out = {**checkpoint, "data": data["heldout"]}
+                    losses.append(submit(held_out_loss_task, f"held-out loss {label}", held_out, {}))
+            cells.append((value, evaluations))
         return runs, cells, losses
 
-    ft_runs, cells, losses = grid(
-        "θ_ft lr", {lr: cfg.extraction_run(False, tune, lr) for lr in s.extraction_lrs}, {}
-    )
+    ft_configs = {lr: {t: cfg.extraction_run(False, t, lr) for t in tunes} for lr in s.extraction_lrs}
+    ft_runs, cells, losses = grid("θ_ft lr", ft_configs, {})
     lr_selection = study.select(
-        "extraction lr", [({"lr": v}, e) for v, e in cells], {"run": "θ_ft", "seed": tune}, losses
+        "extraction lr", [({"lr": v}, e) for v, e in cells], {"run": "θ_ft", "seeds": tunes}, losses
     )
     lr = study.chosen(lr_selection)["lr"]
-    ao_configs = {w: cfg.extraction_run(True, tune, lr, w) for w in s.extraction_aux_weights}
+    ao_configs = {
+        w: {t: cfg.extraction_run(True, t, lr, w) for t in tunes} for w in s.extraction_aux_weights
+    }
     ao_runs, cells, losses = grid("θ_ao aux weight", ao_configs, {"selection": lr_selection})
     weight_selection = study.select(
         "extraction auxiliary weight",
         [({"aux_weight": v}, e) for v, e in cells],
-        {"run": "θ_ao", "seed": tune},
+        {"run": "θ_ao", "seeds": tunes},
         losses,
     )
     weight = study.chosen(weight_selection)["aux_weight"]
@@ -244,8 +249,8 @@ def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[st
         "aux_weight": weight,
         "lr_selection": lr_selection,
         "weight_selection": weight_selection,
-        "standard": ft_runs[lr],
-        "auxiliary": ao_runs[weight],
+        "standard": {t: ft_runs[lr, t] for t in tunes},
+        "auxiliary": {t: ao_runs[weight, t] for t in tunes},
     }
 
 
@@ -297,7 +302,7 @@ def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: A
 
 def _run_study(study: _Study) -> dict[str, Any]:
     cfg, s, submit = study.cfg, study.cfg.study, study.submit
-    tune = s.tuning_seed
+    tunes = s.tuning_seeds
     arms = s.arms
 
     # Demonstrations and θ_pt.
@@ -326,14 +331,17 @@ def _run_study(study: _Study) -> dict[str, Any]:
     aux_grid = [
         (
             w,
-            submit_arm(
-                study.steps,
-                base,
-                "aux",
-                tune,
-                cfg.study_downstream("aux", tune, aux_weight=w),
-                label=f"tune aux weight={w}",
-            ),
+            [
+                submit_arm(
+                    study.steps,
+                    base,
+                    "aux",
+                    t,
+                    cfg.study_downstream("aux", t, aux_weight=w),
+                    label=_seeded(f"tune aux weight={w}", t, tunes),
+                )
+                for t in tunes
+            ],
         )
         for w in (s.aux_weights if "aux" in arms else [])
     ]
@@ -347,8 +355,19 @@ def _run_study(study: _Study) -> dict[str, Any]:
     # The downstream auxiliary weight, on the same endpoint the study is judged at.
     chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
     if aux_grid:
-        cells = [({"aux_weight": w}, study.validate_curve(run, f"aux weight={w}")) for w, run in aux_grid]
-        aux_selection = study.select("auxiliary weight", cells, {"seed": tune, "endpoint": cfg.curve_budgets})
+        cells = [
+            (
+                {"aux_weight": w},
+                [
+                    e
+                    for t, run in zip(tunes, tuning_runs, strict=True)
+                    for e in study.validate_curve(run, _seeded(f"aux weight={w}", t, tunes))
+                ],
+            )
+            for w, tuning_runs in aux_grid
+        ]
+        context = {"seeds": tunes, "endpoint": cfg.curve_budgets}
+        aux_selection = study.select("auxiliary weight", cells, context)
         chosen_values["aux_weight"] = study.chosen(aux_selection)["aux_weight"]
         for seed in cfg.seeds:
             step = cfg.study_downstream("aux", seed, aux_weight=chosen_values["aux_weight"])
@@ -377,37 +396,47 @@ def _run_study(study: _Study) -> dict[str, Any]:
 
     # CapVector's α × λ on the tuning γ, then each draw's θ_meta and θ_null and the remaining arms.
     rest = [arm for arm in ("meta_sft", "capvector", "null_capvector") if arm in arms]
-    tuning = {
-        **base,
-        "vector": submit(
+    tuning_vectors = {
+        t: submit(
             extract_task,
-            "tuning capability vector γ",
-            {"minuend": extraction["auxiliary"], "subtrahend": extraction["standard"], "base": pretrained},
+            _seeded("tuning capability vector γ", t, tunes),
+            {
+                "minuend": extraction["auxiliary"][t],
+                "subtrahend": extraction["standard"][t],
+                "base": pretrained,
+            },
             cfg.vector,
-        ),
+        )
+        for t in tunes
     }
     grid_cells = []
     for alpha in s.alphas:
-        meta = submit(
-            merge_task,
-            f"tune merge θ_meta α={alpha}",
-            {"base": pretrained, "vector": tuning["vector"]},
-            cfg.merge_config(alpha),
-        )
+        metas = {
+            t: submit(
+                merge_task,
+                _seeded(f"tune merge θ_meta α={alpha}", t, tunes),
+                {"base": pretrained, "vector": tuning_vectors[t]},
+                cfg.merge_config(alpha),
+            )
+            for t in tunes
+        }
         for scale in s.lambda_scales:
             what = f"capvector α={alpha} λ={scale}"
-            run = submit_arm(
-                study.steps,
-                tuning,
-                "capvector",
-                tune,
-                cfg.study_downstream("capvector", tune, lambda_scale=scale),
-                label=f"tune {what}",
-                meta=meta,
-            )
-            grid_cells.append(({"alpha": alpha, "lambda_scale": scale}, run, what))
-    cells = [(values, study.validate_curve(run, what)) for values, run, what in grid_cells]
-    grid_selection = study.select("α and λ", cells, {"seed": tune, "endpoint": cfg.curve_budgets})
+            evaluations = []
+            for t in tunes:
+                run = submit_arm(
+                    study.steps,
+                    {**base, "vector": tuning_vectors[t]},
+                    "capvector",
+                    t,
+                    cfg.study_downstream("capvector", t, lambda_scale=scale),
+                    label=_seeded(f"tune {what}", t, tunes),
+                    meta=metas[t],
+                )
+                evaluations += study.validate_curve(run, _seeded(what, t, tunes))
+            grid_cells.append(({"alpha": alpha, "lambda_scale": scale}, evaluations))
+    context = {"seeds": tunes, "endpoint": cfg.curve_budgets}
+    grid_selection = study.select("α and λ", grid_cells, context)
     best = study.chosen(grid_selection)
     chosen_values |= {"alpha": best["alpha"], "lambda_scale": best["lambda_scale"]}
     merge = cfg.merge_config(best["alpha"])

@@ -38,7 +38,9 @@ class StudySettings(BaseModel):
 
     Args:
         draws: extraction seeds; each draw trains its own θ_ft and θ_ao, hence its own γ.
-        tuning_seed: seed of the runs values are chosen from (never a compared run's seed or draw).
+        tuning_seeds: seeds of the runs values are chosen from (never a compared run's seed or draw);
+            a cell's score is its mean validation success over them, so with 2 or more one lucky
+            tuning run cannot pick a value.
         extraction_lrs: θ_ft's lr grid, chosen on D_ext validation goals (ties: lower held-out loss).
         extraction_aux_weights: θ_ao's auxiliary-weight grid, chosen on D_ext validation goals (ties:
             lower held-out action loss): γ comes from the strongest objective the extraction set
@@ -48,8 +50,9 @@ class StudySettings(BaseModel):
             second half of the extraction run.
         non_inferiority_margin: points; θ_meta is "not worse" than θ_pt when the CI's low end is above
             −margin.
-        alphas: merge coefficients of the α × λ grid.
-        lambda_scales: λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (tasks.training: orthogonal.scale).
+        alphas: merge coefficients of the α × λ grid (default 0.5–2: the paper's best was 1.1).
+        lambda_scales: λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (tasks.training: orthogonal.scale);
+            0 (θ_meta without the loss) is in the default grid, so the loss has to earn its place.
         aux_weights: the downstream auxiliary arm's grid: as many cells as α × λ, so both arms get the
             same tuning budget.
         budgets: downstream steps at which every run is kept and tested besides the final one. The
@@ -64,14 +67,14 @@ class StudySettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
-    tuning_seed: int = 1000
+    tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001], min_length=1)
     extraction_lrs: list[float] = Field(min_length=1)
     extraction_aux_weights: list[float] = Field(min_length=1)
     heldout_episodes: int = Field(5, ge=1)
     flat_tolerance: float = Field(0.05, gt=0, lt=1)
     non_inferiority_margin: float = Field(5.0, gt=0)
-    alphas: list[float] = Field(min_length=1)
-    lambda_scales: list[float] = Field(min_length=1)
+    alphas: list[float] = Field(default_factory=lambda: [0.5, 1.0, 1.5, 2.0], min_length=1)
+    lambda_scales: list[float] = Field(default_factory=lambda: [0.0, 0.1, 1.0], min_length=1)
     aux_weights: list[float] = Field(min_length=1)
     budgets: list[int] = Field(min_length=1)
     arms: list[StudyArm] = Field(default_factory=lambda: list(ALL_ARMS))
@@ -86,7 +89,7 @@ class StudySettings(BaseModel):
                 f"study.aux_weights has {len(self.aux_weights)} values, the α × λ grid {cells} cells: "
                 "the auxiliary arm is tuned on the same budget as CapVector"
             )
-        grids = ("draws", "alphas", "lambda_scales", "aux_weights", "extraction_lrs")
+        grids = ("draws", "tuning_seeds", "alphas", "lambda_scales", "aux_weights", "extraction_lrs")
         grids += ("extraction_aux_weights",)
         for name in (*grids, "budgets"):
             values = getattr(self, name)
@@ -125,8 +128,10 @@ class StudyConfig(PipelineConfig):
                 f"extraction.steps ({self.extraction.steps}) must be at least 4: the convergence check "
                 "reads the held-out loss at half and three quarters of the run"
             )
-        if self.study.tuning_seed in self.seeds or self.study.tuning_seed in self.study.draws:
-            raise ValueError(f"study.tuning_seed {self.study.tuning_seed} is also a compared seed or draw")
+        compared = set(self.seeds) | set(self.study.draws)
+        clash = sorted(set(self.study.tuning_seeds) & compared)
+        if clash:
+            raise ValueError(f"study.tuning_seeds {clash} are also compared seeds or draws")
         return self
 
     # ------------------------------------------------------------ derived

@@ -42,3 +42,20 @@ def test_another_seed_adds_a_run_and_its_evaluation_per_arm_to_the_pipeline():
     assert added == sorted(
         [f"downstream {arm} seed 7" for arm in config.arms] + [f"evaluate {arm}/seed7" for arm in config.arms]
     )
+
+
+def test_a_second_tuning_seed_repeats_every_tuning_run_and_each_selection_averages_both():
+    """Issue 41: a value is chosen on the mean over tuning seeds, never on one lucky tuning run."""
+    one = study_plan(load_study("study-smoke", ["study.tuning_seeds=[1000]"]))
+    two = study_plan(load_study("study-smoke", ["study.tuning_seeds=[1000, 1001]"]))
+    tuning = [p.step for p in one if p.step.startswith(("tune ", "tuning "))]
+    assert tuning
+    for step in tuning:  # each tuning step once per seed
+        assert {f"{step} seed 1000", f"{step} seed 1001"} <= set(labels(two)), step
+    selections = [p for p in two if p.step.startswith("select ")]
+    assert len(selections) == len([p for p in one if p.step.startswith("select ")]) == 4
+    for selection in selections:
+        assert selection.config["context"]["seeds"] == [1000, 1001]
+        cell = selection.config["candidates"][0]["evaluations"]
+        single = next(p for p in one if p.step == selection.step).config["candidates"][0]["evaluations"]
+        assert len(cell) == 2 * len(single)  # the cell's score averages both seeds' validations

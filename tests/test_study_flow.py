@@ -179,8 +179,10 @@ def test_study_presets_are_checked_before_anything_runs(tmp_path):
         load_study("study-smoke", ["study.draws=[-1, 0]"])  # -1 marks the shared arms
     with pytest.raises(ValueError, match="study.gate needs arms"):
         load_study("study-smoke", ["study.gate=true", "study.arms=[sft, capvector]"])
-    with pytest.raises(ValueError, match="tuning_seed"):
-        load_study("study-smoke", ["study.tuning_seed=0"])
+    with pytest.raises(ValueError, match=r"tuning_seeds \[0\] are also compared"):
+        load_study("study-smoke", ["study.tuning_seeds=[1000, 0]"])
+    with pytest.raises(ValueError, match="lambda_scales must be ≥ 0"):
+        load_study("study-smoke", ["study.lambda_scales=[-0.1, 1.0]"])
     with pytest.raises(ValueError, match="not a study"):
         load_study("smoke")
     proc = run_cli("run", "--preset", "study-smoke", home=tmp_path / "home", check=False)
