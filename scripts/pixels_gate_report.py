@@ -2,8 +2,8 @@
 
 `scripts/pixels_gate_gpu.py` ran on lent H200 machines (and once on a workstation); its per-episode
 records and run summaries were copied into docs/studies/data/. This script recomputes every number of
-docs/studies/study_pixels_gpu.md from them with the study's own statistics (paired hierarchical bootstrap,
-MDD) and draws the figure.
+docs/studies/study_pixels_gpu.md from them with the study's own statistics (paired t intervals on a
+conservative moments variance since issue 41, MDD) and draws the figure.
 
     python scripts/pixels_gate_report.py
 """
@@ -210,7 +210,7 @@ records by `scripts/pixels_gate_report.py`.
 **Answer: on pixels, and on the state testbed with the larger policy (runs 7-8), the auxiliary
 objective helps by a few points at most, never by 10 with an interval above 0, so CapVector is
 untestable here too.** Auxiliary SFT − SFT at the primary endpoint (mean
-success over the budgets, paired by seed, task and goal, hierarchical bootstrap 95 % CI):
+success over the budgets, paired by seed, task and goal, 95 % t intervals of issue 41's statistics):
 
 - run 1 (the gate phase, 5 demos per task, `spatial_depth`): **{gate}**: the objective *hurts* early
   (−5.7 at 100 steps) and ties at 400;
