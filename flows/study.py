@@ -44,12 +44,13 @@ from tasks.study_inputs import (
     HeldOutLoss,
     InputKey,
     Pretrained,
+    ReplicateVector,
     Selection,
     StandardRun,
     TestEvaluation,
 )
 from tasks.training import snapshots_of, train_task
-from tasks.vectors import extract_task, merge_task, null_vector_task
+from tasks.vectors import extract_task, mean_vector_task, merge_task, null_vector_task
 from tasks.workspace import Workspace, workspace_for
 
 SHARED = -1
@@ -88,6 +89,8 @@ class _Study:
         self.validation_ext = cfg.extraction_validation()
         self._started: dict[tuple[str, int], Any] = {}
         self.heldout_downstream: Any = None  # held-out D_down demos (the secondary endpoint)
+        self.unit = "replicate" if cfg.study.draws_per_replicate > 1 else "draw"
+        """What CapVector's arms are compared over: γ draws, or replicates (means of K draws)."""
 
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
@@ -114,8 +117,8 @@ class _Study:
     def train_draw_arm(
         self, stage: dict[str, Any], arm: str, d: int, seed: int, step: Any, selection: Any = None
     ) -> Any:
-        """A compared run of an arm that depends on draw d (its name carries the draw: unique)."""
-        label = f"downstream {arm} draw {d} seed {seed}"
+        """A compared run of an arm that depends on draw (or replicate) d (its name carries it: unique)."""
+        label = f"downstream {arm} {self.unit} {d} seed {seed}"
         return submit_arm(self.steps, stage, arm, seed, step, label=label, selection=selection)
 
     def validate_curve(self, run: Any, what: str) -> list[Any]:
@@ -167,7 +170,7 @@ class _Study:
         """Every compared run at every budget, on the same test goals; its final checkpoint's held-out
         action loss on D_down (the continuous secondary endpoint)."""
         for (arm, d, seed), run in runs.items():
-            what = f"{arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed}"
+            what = f"{arm}" + ("" if d == SHARED else f" {self.unit} {d}") + f" seed {seed}"
             for b, checkpoint in self.snapshots(run).items():
                 test = self.submit(evaluate_task, f"test {what} @ {b}", {"checkpoint": checkpoint}, self.test)
                 self.record(TestEvaluation(arm=arm, draw=d, seed=seed, budget=b), test)
@@ -255,7 +258,7 @@ def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[st
 
 
 def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, Any]) -> dict[str, Any]:
-    """θ_ft^d and θ_ao^d with the chosen values, γ^d, its null vector, their D_ext validations."""
+    """θ_ft^d and θ_ao^d with the chosen values, γ^d, their D_ext validations."""
     cfg, submit = study.cfg, study.submit
     inputs = {
         "data": stage["data"]["extraction"],
@@ -274,7 +277,6 @@ def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, An
         {"minuend": ao, "subtrahend": ft, "base": stage["pretrained"]},
         cfg.vector,
     )
-    null = submit(null_vector_task, f"draw {d} null vector", {"vector": vector}, {"seed": d})
     for which, run in (("ft", ft), ("ao", ao)):
         validation = submit(
             evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, study.validation_ext
@@ -282,7 +284,29 @@ def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, An
         study.record(ExtractionValidation(which=which, draw=d), validation)
     study.record(CapabilityVector(draw=d), vector)
     study.record(StandardRun(draw=d), ft)
-    return {**stage, "standard": ft, "auxiliary": ao, "vector": vector, "null_vector": null}
+    return {**stage, "standard": ft, "auxiliary": ao, "vector": vector}
+
+
+def _units(study: _Study, draws: dict[int, dict[str, Any]]) -> dict[int, dict[str, Any]]:
+    """The units CapVector's arms are compared over, each with its vector and null vector: the draws, or
+    with `study.draws_per_replicate` K > 1 the replicates, each the mean γ̄^r of K consecutive draws
+    (its θ_ft and θ_ao, which SFT from θ_ao / θ_ft start from, are its first draw's)."""
+    k = study.cfg.study.draws_per_replicate
+    units = dict(draws)
+    if k > 1:
+        ids = sorted(draws)
+        units = {}
+        for r in range(len(ids) // k):
+            group = ids[r * k : (r + 1) * k]
+            inputs = {f"vector {i}": draws[d]["vector"] for i, d in enumerate(group)}
+            vector = study.submit(mean_vector_task, f"replicate {r} mean capability vector γ̄", inputs, {})
+            study.record(ReplicateVector(replicate=r), vector)
+            units[r] = {**draws[group[0]], "vector": vector}
+    for u, unit in units.items():
+        null_inputs = {"vector": unit["vector"]}
+        label = f"{study.unit} {u} null vector"
+        unit["null_vector"] = study.submit(null_vector_task, label, null_inputs, {"seed": u})
+    return units
 
 
 def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: Any) -> None:
@@ -351,6 +375,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
     # Choices for the extraction runs, then every draw's θ_ft, θ_ao, γ and null vector.
     extraction = _extraction(study, data, pretrained)
     draws = {d: _draw(study, d, base, extraction) for d in s.draws}
+    units = _units(study, draws)
 
     # The downstream auxiliary weight, on the same endpoint the study is judged at.
     chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
@@ -375,12 +400,11 @@ def _run_study(study: _Study) -> dict[str, Any]:
                 study.steps, base, "aux", seed, step, selection=aux_selection
             )
 
-    # The gate's arms: SFT from each draw's θ_ao and θ_ft.
-    for d, stage in draws.items():
+    # The gate's arms: SFT from each unit's θ_ao and θ_ft.
+    for d, stage in units.items():
         for arm in [a for a in ("sft_from_ao", "sft_from_ft") if a in arms]:
-            study.test_start(
-                stage["auxiliary" if arm == "sft_from_ao" else "standard"], arm, d, f"draw {d} {arm} start"
-            )
+            start = stage["auxiliary" if arm == "sft_from_ao" else "standard"]
+            study.test_start(start, arm, d, f"{study.unit} {d} {arm} start")
             for seed in cfg.seeds:
                 runs[arm, d, seed] = study.train_draw_arm(
                     stage, arm, d, seed, cfg.study_downstream(arm, seed)
@@ -440,21 +464,22 @@ def _run_study(study: _Study) -> dict[str, Any]:
     best = study.chosen(grid_selection)
     chosen_values |= {"alpha": best["alpha"], "lambda_scale": best["lambda_scale"]}
     merge = cfg.merge_config(best["alpha"])
-    for d, stage in draws.items():
+    for d, stage in units.items():
         for which, vector in (("meta", "vector"), ("null_meta", "null_vector")):
             name = "θ_meta" if which == "meta" else "θ_null"
             merge_inputs = {"base": pretrained, "vector": stage[vector], "selection": grid_selection}
-            stage[which] = submit(merge_task, f"draw {d} merge {name}", merge_inputs, merge)
+            stage[which] = submit(merge_task, f"{study.unit} {d} merge {name}", merge_inputs, merge)
         meta_validation = submit(
             evaluate_task,
-            f"validate draw {d} θ_meta on D_ext",
+            f"validate {study.unit} {d} θ_meta on D_ext",
             {"checkpoint": stage["meta"]},
             study.validation_ext,
         )
         study.record(ExtractionValidation(which="meta", draw=d), meta_validation)
         for arm in rest:
             start = stage["null_meta" if arm == "null_capvector" else "meta"]
-            study.test_start(start, arm, d, f"draw {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}")
+            what = f"{study.unit} {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}"
+            study.test_start(start, arm, d, what)
             scale = None if arm == "meta_sft" else best["lambda_scale"]
             for seed in cfg.seeds:
                 step = cfg.study_downstream(arm, seed, lambda_scale=scale)
@@ -483,6 +508,7 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
         "non_inferiority_margin": s.non_inferiority_margin,
         "n_boot": s.n_boot,
         "gate": s.gate,
+        "draws_per_replicate": s.draws_per_replicate,
         "chosen": chosen_values,
         "grids": {
             "extraction_lr": list(s.extraction_lrs),

@@ -38,6 +38,11 @@ class StudySettings(BaseModel):
 
     Args:
         draws: extraction seeds; each draw trains its own θ_ft and θ_ao, hence its own γ.
+        draws_per_replicate: K; with K > 1 the draws form len(draws) / K replicates, each γ̄^r the mean of
+            K consecutive draws' γ, and CapVector's arms (θ_meta, the orthogonal loss, the null vector)
+            and SFT from θ_ao / θ_ft (the replicate's first draw's) run per replicate: the replicate is
+            the analysis's unit, its variance the draw-level one. γ of one draw is mostly seed noise;
+            the mean of K points at the signal with cos √(Kρ / (Kρ + 1 − ρ)).
         tuning_seeds: seeds of the runs values are chosen from (never a compared run's seed or draw);
             a cell's score is its mean validation success over them, so with 2 or more one lucky
             tuning run cannot pick a value.
@@ -67,6 +72,7 @@ class StudySettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
+    draws_per_replicate: int = Field(1, ge=1)
     tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001], min_length=1)
     extraction_lrs: list[float] = Field(min_length=1)
     extraction_aux_weights: list[float] = Field(min_length=1)
@@ -101,6 +107,11 @@ class StudySettings(BaseModel):
             raise ValueError(f"study.{', study.'.join(bad)} must be positive")
         if any(x < 0 for x in self.lambda_scales):  # 0 belongs in the grid: θ_meta fine-tuned without it
             raise ValueError(f"study.lambda_scales must be ≥ 0, not {self.lambda_scales}")
+        if len(self.draws) % self.draws_per_replicate:
+            raise ValueError(
+                f"study.draws ({len(self.draws)}) must split into replicates of study.draws_per_replicate "
+                f"({self.draws_per_replicate}) draws"
+            )
         missing = {"sft", "capvector"} - set(self.arms)
         if missing:
             raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")

@@ -44,6 +44,7 @@ from tasks.study_inputs import (
     ExtractionValidation,
     HeldOutLoss,
     Pretrained,
+    ReplicateVector,
     Selection,
     StandardRun,
     TestEvaluation,
@@ -83,6 +84,8 @@ class StudyDesign(BaseModel):
     non_inferiority_margin: float
     n_boot: int
     gate: bool = True
+    draws_per_replicate: int = 1
+    """K > 1: CapVector's arms ran per replicate (the mean of K draws); their `draw` is the replicate."""
     stage: Literal["gate", "final"] = "final"
     chosen: dict[str, float]
     grids: dict[str, list[float]]
@@ -344,12 +347,29 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
                 cosines.append(_dot(flat[d], delta) / scale if scale else math.nan)
         values["cos_ft_reference"] = float(np.mean(cosines))
         reference = f"; cos(γ^d, θ_ft^d − θ_pt) {', '.join(f'{c:+.2f}' for c in cosines)}"
+    replicates = ""
+    means = {k.replicate: workspace.path(v) for k, v in inputs_of(inputs, ReplicateVector)}
+    if len(means) >= 2:
+        flat_means = {r: np.concatenate(list(_flat(Checkpoint(p), names).values())) for r, p in means.items()}
+        pairs = list(itertools.combinations(sorted(flat_means), 2))
+        cos = [
+            _dot(flat_means[a], flat_means[b])
+            / math.sqrt(_dot(flat_means[a], flat_means[a]) * _dot(flat_means[b], flat_means[b]))
+            for a, b in pairs
+        ]
+        k = len(draws) // len(means)
+        values["replicate_cos"] = float(np.mean(cos))
+        values["replicate_cos_predicted"] = _mean_vector_cos(k, rho) ** 2
+        replicates = (
+            f"; {len(means)} replicates of {k} draws: mean cos(γ̄^r, γ̄^r′) {values['replicate_cos']:.2f} "
+            f"(ρ̂ predicts {values['replicate_cos_predicted']:.2f})"
+        )
     holds = None if "rho_low" not in values else True if values["rho_low"] > 0 else None
     detail = (
         f"ρ̂ {rho:.2f}{intervals or ' (an interval needs 3 draws)'}; so the mean of these {len(draws)} draws "
         f"has cos {values['mean_vector_cos']:.2f} with the signal; ‖γ‖ "
         f"{', '.join(f'{n:.2f}' for n in norms.values())} against ‖θ_ft^d − θ_ft^d′‖ "
-        f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}{reference}"
+        f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}{reference}{replicates}"
     )
     return Precondition(
         key="e", claim=claim, holds=holds, detail=detail, detail_values=values, measured=len(draws) >= 3
@@ -490,7 +510,8 @@ def _gate_verdict(design: StudyDesign, preconditions: list[Precondition]) -> str
     if not failed:
         return None
     reasons = "; ".join(
-        f"({p.key}) {p.claim}: {'contradicted' if p.holds is False else 'not shown'} — {p.detail}"
+        f"({p.key.replace('_prime', '′')}) {p.claim}: {'contradicted' if p.holds is False else 'not shown'} "
+        f"— {p.detail}"
         for p in failed
     )
     return (

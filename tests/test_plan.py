@@ -4,6 +4,8 @@ properties of the plan; tests/test_study_flow.py checks that a real run announce
 
 from __future__ import annotations
 
+import pytest
+
 from flows.config import load_config
 from flows.recipe import pipeline_plan
 from flows.study import study_plan
@@ -59,3 +61,28 @@ def test_a_second_tuning_seed_repeats_every_tuning_run_and_each_selection_averag
         cell = selection.config["candidates"][0]["evaluations"]
         single = next(p for p in one if p.step == selection.step).config["candidates"][0]["evaluations"]
         assert len(cell) == 2 * len(single)  # the cell's score averages both seeds' validations
+
+
+def test_replicates_average_their_draws_and_carry_capvectors_arms():
+    """study.draws_per_replicate = 2: each replicate's γ̄ is a mean step over its two draws' γ, and the
+    arms that start from a vector (and SFT from θ_ao / θ_ft) run once per replicate, not per draw."""
+    cfg = load_study("study-smoke", ["study.draws=[0,1,2,3]", "study.draws_per_replicate=2"])
+    plan = study_plan(cfg)
+    means = [
+        p for p in plan if p.step.startswith("replicate") and p.step.endswith("mean capability vector γ̄")
+    ]
+    assert [sorted(p.inputs) for p in means] == [["vector 0", "vector 1"]] * 2
+    by_label = {p.step: p for p in plan}
+    assert [s for s in by_label if s.endswith("null vector")] == [
+        "replicate 0 null vector",
+        "replicate 1 null vector",
+    ]
+    for arm in ("capvector", "meta_sft", "null_capvector", "sft_from_ao", "sft_from_ft"):
+        runs = [s for s in by_label if s.startswith(f"downstream {arm} ")]
+        assert sorted(runs) == [f"downstream {arm} replicate {r} seed {s}" for r in (0, 1) for s in cfg.seeds]
+    assert [s for s in by_label if " merge θ_meta" in s and not s.startswith("tune")] == [
+        "replicate 0 merge θ_meta",
+        "replicate 1 merge θ_meta",
+    ]
+    with pytest.raises(ValueError, match="split into replicates"):
+        load_study("study-smoke", ["study.draws=[0,1,2]", "study.draws_per_replicate=2"])
