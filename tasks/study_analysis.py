@@ -211,7 +211,8 @@ def _preconditions(
         Precondition(
             key="a",
             claim="the extraction runs converge (lr chosen on D_ext validation; held-out action loss flat "
-            f"over the second half: moved < {100 * design.flat_tolerance:.0f} %)",
+            f"over the second half: moved < {100 * design.flat_tolerance:.0f} %); reported, not required: "
+            "longer extraction made γ noisier, (e) measures what CapVector needs",
             holds=len(flat) == len(convergence) if convergence else None,
             detail=f"lr {design.chosen['extraction_lr']:g} chosen on validation; held-out loss change over "
             f"the second half: {drops}",
