@@ -201,7 +201,10 @@ def run(
 @runner_options("thread")
 @eval_options
 def evaluate(
-    checkpoints: Annotated[list[str], typer.Argument(help="checkpoint artifact ids (or unique prefixes)")],
+    checkpoints: Annotated[
+        list[str],
+        typer.Argument(help="checkpoint artifact ids (or unique prefixes), or policy files or folders"),
+    ],
     tasks: Annotated[str, typer.Option(help="comma-separated Meta-World task names")],
     home: HomeOption = None,
     as_json: JsonOption = False,
@@ -215,6 +218,9 @@ def evaluate(
 
     preflight("evaluate", home)
     config = EvalConfig(tasks=[t.strip() for t in tasks.split(",") if t.strip()], **eval_settings)
+    from tasks.trained_policy import resolve_checkpoints
+
+    checkpoints = resolve_checkpoints(workspace(home), checkpoints)  # paths imported; types checked
     flow_fn = _on_runner(evaluate_flow, runner_config)
     from flows.runs import run_tags
 

@@ -185,7 +185,7 @@ def test_partial_vector_and_wrong_base(tmp_path):
         got["backbone.layers.0.weight"],
         pt["backbone.layers.0.weight"] + ao["backbone.layers.0.weight"] - ft["backbone.layers.0.weight"],
     )
-    with pytest.raises(VectorOpError, match="force=True"):
+    with pytest.raises(VectorOpError, match="--force"):
         merge(p_other, [(g, 1.0)], tmp_path / "wrong.safetensors")
     assert not (tmp_path / "wrong.safetensors").exists()
     merge(p_other, [(g, 1.0)], tmp_path / "forced.safetensors", force=True)
