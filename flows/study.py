@@ -444,8 +444,10 @@ def _run_study(study: _Study) -> dict[str, Any]:
             )
             for t in tunes
         }
-        for scale in s.lambda_scales:
-            what = f"capvector α={alpha} λ={scale}"
+        lambdas = [("lambda_scale", x, f"λ={x}") for x in s.lambda_scales]
+        lambdas += [("lambda_absolute", x, f"λ_abs={x:g}") for x in s.lambdas]
+        for form, value, name in lambdas:
+            what = f"capvector α={alpha} {name}"
             evaluations = []
             for t in tunes:
                 run = submit_arm(
@@ -453,16 +455,17 @@ def _run_study(study: _Study) -> dict[str, Any]:
                     {**base, "vector": tuning_vectors[t]},
                     "capvector",
                     t,
-                    cfg.study_downstream("capvector", t, lambda_scale=scale),
+                    cfg.study_downstream("capvector", t, **{form: value}),
                     label=_seeded(f"tune {what}", t, tunes),
                     meta=metas[t],
                 )
                 evaluations += study.validate_curve(run, _seeded(what, t, tunes))
-            grid_cells.append(({"alpha": alpha, "lambda_scale": scale}, evaluations))
+            grid_cells.append(({"alpha": alpha, form: value}, evaluations))
     context = {"seeds": tunes, "endpoint": cfg.curve_budgets}
     grid_selection = study.select("α and λ", grid_cells, context)
     best = study.chosen(grid_selection)
-    chosen_values |= {"alpha": best["alpha"], "lambda_scale": best["lambda_scale"]}
+    lam = {k: best[k] for k in ("lambda_scale", "lambda_absolute") if k in best}
+    chosen_values |= {"alpha": best["alpha"], **lam}
     merge = cfg.merge_config(best["alpha"])
     for d, stage in units.items():
         for which, vector in (("meta", "vector"), ("null_meta", "null_vector")):
@@ -480,9 +483,8 @@ def _run_study(study: _Study) -> dict[str, Any]:
             start = stage["null_meta" if arm == "null_capvector" else "meta"]
             what = f"{study.unit} {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}"
             study.test_start(start, arm, d, what)
-            scale = None if arm == "meta_sft" else best["lambda_scale"]
             for seed in cfg.seeds:
-                step = cfg.study_downstream(arm, seed, lambda_scale=scale)
+                step = cfg.study_downstream(arm, seed, **({} if arm == "meta_sft" else lam))
                 runs[arm, d, seed] = study.train_draw_arm(stage, arm, d, seed, step, grid_selection)
     study.test_runs({k: v for k, v in runs.items() if k[0] in rest})
     report = study.analyse("final", _design(cfg, chosen_values))
@@ -516,6 +518,7 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
             "aux_weight": list(s.aux_weights),
             "alpha": list(s.alphas),
             "lambda_scale": list(s.lambda_scales),
+            "lambda_absolute": list(s.lambdas),
         },
     }
 

@@ -276,7 +276,13 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)",
         "",
         "; ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in d.chosen.items())
-        + (" (λ as a multiple of ‖∇ action loss‖/‖γ‖)." if "lambda_scale" in d.chosen else "."),
+        + (
+            " (λ as a multiple of ‖∇ action loss‖/‖γ‖)."
+            if "lambda_scale" in d.chosen
+            else " (λ absolute, the paper's form)."
+            if "lambda_absolute" in d.chosen
+            else "."
+        ),
         "",
     ]
     for name, sel in report.selections.items():

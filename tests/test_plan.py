@@ -86,3 +86,30 @@ def test_replicates_average_their_draws_and_carry_capvectors_arms():
     ]
     with pytest.raises(ValueError, match="split into replicates"):
         load_study("study-smoke", ["study.draws=[0,1,2]", "study.draws_per_replicate=2"])
+
+
+def test_absolute_lambdas_sit_beside_relative_ones_in_the_grid():
+    """Issue 41: λ in the paper's absolute form (1e-4) and as a multiple of ‖∇ loss‖/‖γ‖, in one grid."""
+    cfg = load_study(
+        "study-smoke",
+        ["study.lambda_scales=[0.0, 0.1]", "study.lambdas=[1.0e-4]", "study.aux_weights=[0.25, 0.5, 1.0]"],
+    )
+    plan = study_plan(cfg)
+    runs = {p.step: p for p in plan if p.step.startswith("tune capvector")}
+    assert sorted(runs) == [
+        "tune capvector α=1.0 λ=0.0",
+        "tune capvector α=1.0 λ=0.1",
+        "tune capvector α=1.0 λ_abs=0.0001",
+    ]
+    orthogonal = {s: p.config["orthogonal"] for s, p in runs.items()}
+    absolute = orthogonal["tune capvector α=1.0 λ_abs=0.0001"]
+    assert (absolute["scale"], absolute["weight"]) == ("absolute", 1.0e-4)
+    assert orthogonal["tune capvector α=1.0 λ=0.1"]["scale"] == "action_gradient"
+    grid = next(p for p in plan if p.step == "select α and λ").config["candidates"]
+    assert [c["values"] for c in grid] == [
+        {"alpha": 1.0, "lambda_scale": 0.0},
+        {"alpha": 1.0, "lambda_scale": 0.1},
+        {"alpha": 1.0, "lambda_absolute": 1.0e-4},
+    ]
+    with pytest.raises(ValueError, match="aux_weights has 2 values, the α × λ grid 3 cells"):
+        load_study("study-smoke", ["study.lambdas=[1.0e-4]"])
