@@ -28,7 +28,7 @@ from typing import Any
 
 from flows.config import ARMS
 from flows.recipe import submit_arm
-from flows.steps import PlannedStep, PlanRecorder, StepRunner, resolve
+from flows.steps import CacheProbe, PlannedStep, PlanRecorder, StepRunner, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from flows.study_markdown import load_study_report, study_markdown
 from tasks.data import collect_demos_task
@@ -90,7 +90,8 @@ def after_gate(steps: Any, more: int) -> None:
     """The gate passed: the runner's announced total grows by the steps that now follow it."""
     if more and hasattr(steps, "total"):
         steps.total += more
-        emit(f"[{getattr(steps, 'label', 'study')}] gate passed: {more} more steps, {steps.total} in all")
+        if not isinstance(steps, CacheProbe):  # a probe only looks: it says nothing until it replays
+            emit(f"[{steps.label}] gate passed: {more} more steps, {steps.total} in all")
 
 
 def _start_kind(arm: str) -> str:

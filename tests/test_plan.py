@@ -50,6 +50,26 @@ def test_a_gated_plan_counts_the_steps_before_the_gate_apart_from_those_after_it
     assert study_steps(ungated) == (len(study_plan(ungated)), 0)
 
 
+def test_a_passed_gate_grows_the_announced_total_to_the_whole_plan(capfd):
+    """When the gate passes, the runner's `k/N` total grows by the steps after it, so a study that runs
+    every step ends at N/N with N the whole plan."""
+    from flows.steps import PlanRecorder
+    from flows.study import _PlannedStudy, _run_study
+
+    cfg = load_study("study-smoke", ["study.gate=true"])
+    before, after = study_steps(cfg)
+
+    class Counted(PlanRecorder):
+        label, total = "study study-smoke", before
+
+    recorder = Counted()
+    study = _PlannedStudy(cfg, recorder)
+    study.gate_more = after
+    _run_study(study)  # the recorder's gate passes
+    assert recorder.total == before + after == len(recorder.plan)
+    assert f"gate passed: {after} more steps, {before + after} in all" in capfd.readouterr().err
+
+
 def test_another_seed_adds_a_run_and_its_evaluation_per_arm_to_the_pipeline():
     config = load_config("smoke")
     one = labels(pipeline_plan(config))
