@@ -28,7 +28,7 @@ from typing import Any
 
 from flows.config import ARMS
 from flows.recipe import submit_arm
-from flows.steps import PlannedStep, PlanRecorder, StepRunner, record_plan, resolve
+from flows.steps import CacheProbe, PlannedStep, PlanRecorder, StepRunner, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from flows.study_markdown import load_study_report, study_markdown
 from tasks.data import collect_demos_task
@@ -65,12 +65,33 @@ def study_plan(cfg: StudyConfig) -> list[PlannedStep]:
     """Every step the study submits when its gate passes, in order, from the flow's own code run
     against a recorder: nothing runs or is looked up, and each choice takes its first candidate
     (a choice changes a step's config, never how many steps follow)."""
-    return record_plan(lambda recorder: _run_study(_PlannedStudy(cfg, recorder)))
+    return gated_study_plan(cfg)[0]
 
 
-def study_steps(cfg: StudyConfig) -> int:
-    """How many steps a study submits when its gate passes (progress shows `k/N`): `len(plan)`."""
-    return len(study_plan(cfg))
+def gated_study_plan(cfg: StudyConfig) -> tuple[list[PlannedStep], int]:
+    """The study's plan and where its gate falls: the number of steps submitted up to and including
+    the gate's analysis (every step when `study.gate` is off). The steps after it run only if the
+    gate passes."""
+    recorder = PlanRecorder()
+    study = _PlannedStudy(cfg, recorder)
+    _run_study(study)
+    return recorder.plan, study.gate_at if study.gate_at is not None else len(recorder.plan)
+
+
+def study_steps(cfg: StudyConfig) -> tuple[int, int]:
+    """How many steps a study submits before its gate (all of them when it has none), and how many
+    more after it if the gate passes: progress counts `k/N` to the first, then adds the second once
+    the gate has passed."""
+    plan, gate_at = gated_study_plan(cfg)
+    return gate_at, len(plan) - gate_at
+
+
+def after_gate(steps: Any, more: int) -> None:
+    """The gate passed: the runner's announced total grows by the steps that now follow it."""
+    if more and hasattr(steps, "total"):
+        steps.total += more
+        if not isinstance(steps, CacheProbe):  # a probe only looks: it says nothing until it replays
+            emit(f"[{steps.label}] gate passed: {more} more steps, {steps.total} in all")
 
 
 def _start_kind(arm: str) -> str:
@@ -91,6 +112,8 @@ class _Study:
         self.heldout_downstream: Any = None  # held-out D_down demos (the secondary endpoint)
         self.unit = "replicate" if cfg.study.draws_per_replicate > 1 else "draw"
         """What CapVector's arms are compared over: γ draws, or replicates (means of K draws)."""
+        self.gate_more = 0
+        """The steps that follow a passed gate (the runner's total grows by them then)."""
 
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
@@ -189,6 +212,8 @@ class _PlannedStudy(_Study):
 
     def __init__(self, cfg: StudyConfig, recorder: PlanRecorder):
         super().__init__(cfg, recorder, None)
+        self.gate_at: int | None = None
+        """How many steps were submitted when the gate was asked (its analysis included)."""
 
     def snapshots(self, run: PlannedStep) -> dict[int, PlannedStep]:
         train = run.config["train"]
@@ -198,6 +223,7 @@ class _PlannedStudy(_Study):
         return selection.config["candidates"][0]["values"]
 
     def gate_passed(self, report: PlannedStep) -> bool:
+        self.gate_at = len(self.steps.plan)
         return True
 
 
@@ -417,6 +443,8 @@ def _run_study(study: _Study) -> dict[str, Any]:
         if not study.gate_passed(gate_report):
             emit(f"[study {cfg.name}] gate: preconditions (c), (c′) not shown; CapVector's arms are not run")
             return {"report": gate_report, "selections": _selections(study)}
+        if study.gate_more:
+            after_gate(study.steps, study.gate_more)
 
     # CapVector's α × λ on the tuning γ, then each draw's θ_meta and θ_null and the remaining arms.
     rest = [arm for arm in ("meta_sft", "capvector", "null_capvector") if arm in arms]
@@ -527,5 +555,7 @@ def plan_study(cfg: StudyConfig, steps: StepRunner) -> dict[str, Any]:
     """Submit the study's steps to `steps` (a flow's runner, or a CacheProbe): the report's and the
     selections' ids, and the report in Markdown."""
     workspace = workspace_for(steps.home)
-    ids = _run_study(_Study(cfg, steps, workspace))
+    study = _Study(cfg, steps, workspace)
+    study.gate_more = study_steps(cfg)[1]
+    ids = _run_study(study)
     return {**ids, "markdown": study_markdown(workspace, load_study_report(workspace, ids["report"]))}

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from flows.cli_common import HomeOption, JsonOption, Table, console, print_json, workspace
+from flows.cli_common import HomeOption, JsonOption, Table, console, err, print_json, workspace
 
 DtypeOption = Annotated[
     str | None,
@@ -136,7 +136,7 @@ def vector_stats(
     """Norms, relative norms, cosine and sign agreement per tensor / module group."""
     from tasks.vector_commands import stats_cli
 
-    rows = stats_cli(workspace(home), vector, base, reference)
+    rows, record, reused = stats_cli(workspace(home), vector, base, reference)
     if as_json:
         print_json([r.model_dump() for r in rows])
         return
@@ -153,6 +153,8 @@ def vector_stats(
             _fmt(r.sign_agreement),
         )
     console.print(table)
+    said = "recorded before: reused" if reused else "recorded"
+    err.print(f"stats artifact {record.id} ({said})", highlight=False)
 
 
 def _fmt(x: float | None) -> str:

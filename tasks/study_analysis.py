@@ -126,6 +126,28 @@ class LossComparison(BaseModel):
     baseline_mean: float
 
 
+class RunPoint(BaseModel):
+    """One compared run's mean success (points) over its test goals at one budget (budget 0: the
+    checkpoint it started from)."""
+
+    draw: int
+    seed: int
+    budget: int
+    success: float
+
+
+class TaskEndpoint(BaseModel):
+    """An arm's primary endpoint on one task: the mean over its runs of each run's mean over the task's
+    goals, a 95 % t interval over runs (clipped to 0-100; NaN from one run), and the n behind it. Runs,
+    not goals, are the unit: one run's goals are not independent draws of the arm's effect."""
+
+    mean: float
+    ci_low: float
+    ci_high: float
+    n_runs: int
+    n_goals: int
+
+
 class StudyReport(BaseModel):
     design: StudyDesign
     gate: str | None = None
@@ -141,6 +163,10 @@ class StudyReport(BaseModel):
     """The continuous secondary endpoint: held-out action loss of the compared runs' final checkpoints."""
     per_task: dict[str, dict[str, float]] = {}
     """Arm -> task -> mean success (points) at the primary endpoint, over draws, seeds and goals."""
+    per_task_intervals: dict[str, dict[str, TaskEndpoint]] = {}
+    """Arm -> task -> its endpoint with an interval over runs and n (the per-task figure's bars)."""
+    run_curves: dict[str, list[RunPoint]] = {}
+    """Arm -> each run's success at each budget (the points beside the curves' means)."""
     final_checkpoints: dict[str, list[str]]
     """Arm -> its runs' final checkpoints (where the rendered report reads time per step)."""
     designs_for_5_points: dict[str, Design | None]
@@ -320,6 +346,11 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
         "gamma_norm": float(np.mean(list(norms.values()))),
     }
     values["mean_vector_cos"] = _mean_vector_cos(len(draws), rho)
+    values |= {f"gamma_norm_draw_{d}": n for d, n in norms.items()}  # per draw, for the γ figure
+    values |= {
+        f"cos_draws_{a}_{b}": dots[a, b] / (norms[a] * norms[b]) if norms[a] * norms[b] else math.nan
+        for a, b in itertools.combinations(draws, 2)
+    }
     intervals = ""
     if len(draws) >= 3:
         jack = np.array([signal([d for d in draws if d != left]) for left in draws])
@@ -396,6 +427,21 @@ def _flat(checkpoint: Checkpoint, names: list[str] | None = None) -> dict[str, n
     return {n: t.double().ravel().numpy() for n, t in tensors.items() if t.is_floating_point()}
 
 
+def _per_task_intervals(episodes: pd.DataFrame) -> dict[str, dict[str, TaskEndpoint]]:
+    """`TaskEndpoint`s of every arm and task at the primary endpoint."""
+    endpoint = episodes[episodes["budget"] == ENDPOINT]
+    out: dict[str, dict[str, TaskEndpoint]] = {}
+    for (arm, task), rows in endpoint.groupby(["arm", "task"]):
+        runs = 100 * rows.groupby(["draw", "seed"])["success"].mean().to_numpy()
+        n, mean = len(runs), float(runs.mean())
+        half = t_quantile(0.975, n - 1) * float(runs.std(ddof=1)) / math.sqrt(n) if n > 1 else math.nan
+        low, high = (math.nan, math.nan) if n < 2 else (max(0.0, mean - half), min(100.0, mean + half))
+        out.setdefault(str(arm), {})[str(task)] = TaskEndpoint(
+            mean=mean, ci_low=low, ci_high=high, n_runs=n, n_goals=int(rows["goal"].nunique())
+        )
+    return out
+
+
 def gate_passed(workspace: Workspace, report_id: str) -> bool:
     """Whether a gate-stage analysis found preconditions (c) and (c′) shown (intervals above 0)."""
     report = StudyReport.model_validate(workspace.api.store.open_json(report_id))
@@ -457,6 +503,15 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         per_task={
             arm: {task: 100 * float(v) for task, v in rows.groupby("task")["success"].mean().items()}
             for arm, rows in episodes[episodes["budget"] == ENDPOINT].groupby("arm")
+        },
+        per_task_intervals=_per_task_intervals(episodes),
+        run_curves={
+            arm: [
+                RunPoint(draw=int(d), seed=int(s), budget=int(b), success=100 * float(v))
+                for (d, s, b), v in rows.groupby(["draw", "seed", "budget"])["success"].mean().items()
+            ]
+            for arm, rows in episodes[episodes["budget"] != ENDPOINT].groupby("arm")
+            if arm in curves
         },
         final_checkpoints={arm: sorted(ids) for arm, ids in sorted(by_arm.items())},
         designs_for_5_points={

@@ -512,9 +512,16 @@ def _refuse_repeated(refs: list[str], located: list[Input]) -> None:
             raise ValueError(f"{ref!r} {same} (inputs {j} and {i}): each vector counts once in a mean")
 
 
-def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: str | None) -> list[VectorStat]:
+def stats_cli(
+    workspace: Workspace, vector: str, base: str | None, reference: str | None
+) -> tuple[list[VectorStat], ArtifactRecord, bool]:
+    """The vector's statistics, their `vector_stats` artifact, and whether it was recorded before: the
+    same vector, base and reference give the same document, hence the same artifact (content
+    addressing), so a repeated call reuses it and registers nothing new."""
+    from artifacts.records import utcnow
     from tasks.vectors import stat_rows  # imports Prefect: only this command needs it
 
+    started = utcnow()
     with workspace.api.store.staging() as stage:
         refs = [(vector, "vector"), (base or None, "checkpoint"), (reference or None, "vector")]
         v, b, r = _locate_all(workspace, refs, stage, copy_now=True)  # stats does not hash what it reads
@@ -525,7 +532,7 @@ def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: st
         for item in items:
             _check_copy(item)
         ids = _commit(workspace, items, {}, verified)
-        workspace.api.register_vector_stats(
+        record = workspace.api.register_vector_stats(
             ids[id(v)],
             stat_rows(rows),
             base_id=ids[id(b)] if b else None,
@@ -533,4 +540,4 @@ def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: st
             parent_hashes=verified,
             **_provenance(),
         )
-    return rows
+    return rows, record, record.created_at < started

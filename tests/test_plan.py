@@ -8,7 +8,7 @@ import pytest
 
 from flows.config import load_config
 from flows.recipe import pipeline_plan
-from flows.study import study_plan
+from flows.study import gated_study_plan, study_plan, study_steps
 from flows.study_config import load_study
 
 
@@ -34,6 +34,40 @@ def test_the_gate_adds_its_analysis_and_nothing_else():
     off = labels(study_plan(load_study("study-smoke", ["study.gate=false"])))
     on = labels(study_plan(load_study("study-smoke", ["study.gate=true"])))
     assert sorted(set(on) - set(off)) == ["analyse study study-smoke (gate)"] and set(off) <= set(on)
+
+
+def test_a_gated_plan_counts_the_steps_before_the_gate_apart_from_those_after_it():
+    """Issue 37: the progress total and `--dry-run` count what runs before the gate; the steps after it
+    (CapVector's arms, θ_meta, θ_null, the final analysis) are counted apart, as run only if it passes."""
+    plan, gate_at = gated_study_plan(load_study("study-smoke", ["study.gate=true"]))
+    assert labels(plan)[gate_at - 1] == "analyse study study-smoke (gate)"
+    after = labels(plan)[gate_at:]
+    assert after[-1] == "analyse study study-smoke"
+    assert not any(a in step for step in after for a in ("sft_from_ao", "sft_from_ft", "demos"))
+    assert any("capvector" in step for step in after) and any("meta" in step for step in after)
+    assert study_steps(load_study("study-smoke", ["study.gate=true"])) == (gate_at, len(plan) - gate_at)
+    ungated = load_study("study-smoke", ["study.gate=false"])
+    assert study_steps(ungated) == (len(study_plan(ungated)), 0)
+
+
+def test_a_passed_gate_grows_the_announced_total_to_the_whole_plan(capfd):
+    """When the gate passes, the runner's `k/N` total grows by the steps after it, so a study that runs
+    every step ends at N/N with N the whole plan."""
+    from flows.steps import PlanRecorder
+    from flows.study import _PlannedStudy, _run_study
+
+    cfg = load_study("study-smoke", ["study.gate=true"])
+    before, after = study_steps(cfg)
+
+    class Counted(PlanRecorder):
+        label, total = "study study-smoke", before
+
+    recorder = Counted()
+    study = _PlannedStudy(cfg, recorder)
+    study.gate_more = after
+    _run_study(study)  # the recorder's gate passes
+    assert recorder.total == before + after == len(recorder.plan)
+    assert f"gate passed: {after} more steps, {before + after} in all" in capfd.readouterr().err
 
 
 def test_another_seed_adds_a_run_and_its_evaluation_per_arm_to_the_pipeline():
