@@ -360,9 +360,14 @@ def test_identical_rerun_registers_an_output_written_but_never_registered(user, 
     """Killed between writing `-o` and registering it: the same command again registers that output."""
     from tasks.vector_commands import extract_cli, merge_cli
 
+    from tasks.workspace import Workspace
+
     workspace, folder, p = user
     out = folder / ("gamma" if sharded else "gamma.safetensors")
-    extract(p["ao"], p["ft"], out, base=p["pt"])  # what the killed command had written
+    # what the killed command had written (a folder output carries the command's model card)
+    extract_cli(
+        Workspace(str(folder.parent / "elsewhere")), str(p["ao"]), str(p["ft"]), out, str(p["pt"]), None, None
+    )
     mtime = out.stat().st_mtime_ns
     record = extract_cli(workspace, str(p["ao"]), str(p["ft"]), out, str(p["pt"]), None, None)
     assert out.stat().st_mtime_ns == mtime  # left as it was
