@@ -205,6 +205,10 @@ def _load_entry_points() -> None:
             raise ImportError(
                 f"policy plugin entry point {ep.name!r} ({ep.value}) failed to load: {exc}"
             ) from exc
+        except SystemExit as exc:  # sys.exit() at import: it would end the command, silently, with its code
+            raise ImportError(
+                f"policy plugin entry point {ep.name!r} ({ep.value}) called sys.exit({exc.code!r}) at import"
+            ) from None
 
 
 def policy_class(type_name: str) -> type[Policy]:

@@ -1115,10 +1115,10 @@ def null_vector(
         squares, size = 0.0, 0
         for x in reader.chunks(n, bounds):
             wide = _widen(x, dtype).astype(np.float64)
-            squares += float(np.dot(wide, wide))
+            squares += _dot(wide, wide)
             size += x.size
         noise = rng.standard_normal(size)
-        length = float(np.linalg.norm(noise))
+        length = math.sqrt(_dot(noise, noise))
         noise *= math.sqrt(squares) / length if length > 0 else 0.0
         yield _narrow(noise.astype(_wide(dtype)), dtype)
 
@@ -1158,6 +1158,15 @@ class VectorStat(BaseModel):
     relative_norm: float | None = None  # ‖γ‖ / ‖θ_base‖
     cosine: float | None = None  # cos(γ, reference vector)
     sign_agreement: float | None = None  # share of elements, both non-zero, with equal signs
+
+
+def _dot(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> float:
+    """a · b in float64 with the same bits whatever the thread count and BLAS: the products summed by
+    numpy's pairwise summation, whose order follows the length alone. A BLAS dot splits its sum among
+    its threads (OpenBLAS above 10,000 elements), so the last digits of a norm, hence the id of the
+    `vector_stats` of γ, followed the thread count (one on a Dask worker, several in the step pool).
+    `out`: a float64 buffer of a's size for the products."""
+    return float(np.add.reduce(np.multiply(a, b, out=out)))
 
 
 def group_of(name: str, depth: int) -> str:
@@ -1211,7 +1220,7 @@ def _tensor_sums(
 ) -> dict[str, float]:
     """One tensor's sums for `stats`, streamed in pieces of about `CHUNK_BYTES` (per input, whatever its
     dtype): memory does not grow with the tensor. Each piece is widened to float64 and its sums (in
-    float64) are added up in Python floats."""
+    float64, `_dot`: no BLAS, the same bits on any number of threads) are added up in Python floats."""
     ckpts = {"vector": vector, **others}
     item = max(c.specs[name].itemsize for c in ckpts.values())
     step = max(1, CHUNK_BYTES // item)
@@ -1223,14 +1232,18 @@ def _tensor_sums(
         g = _float64_chunk(vector, name, i, j, buffers, "vector")
         if not _all_finite(g):
             raise VectorOpError(f"NaN or Inf in tensor {name!r} of vector")
-        s["sq"] += float(g @ g)
+        products = buffers.get("products")
+        if products is None or products.size < g.size:
+            products = buffers["products"] = np.empty(max(g.size, step), np.float64)
+        products = products[: g.size]
+        s["sq"] += _dot(g, g, products)
         if "base" in others:
             w = _float64_chunk(others["base"], name, i, j, buffers, "base")
-            s["bsq"] += float(w @ w)
+            s["bsq"] += _dot(w, w, products)
         if "reference_vector" in others:
             r = _float64_chunk(others["reference_vector"], name, i, j, buffers, "reference_vector")
-            s["rsq"] += float(r @ r)
-            s["dot"] += float(g @ r)
+            s["rsq"] += _dot(r, r, products)
+            s["dot"] += _dot(g, r, products)
             sg, sr = np.sign(g), np.sign(r)
             both = (sg != 0) & (sr != 0)
             s["both"] += float(np.count_nonzero(both))

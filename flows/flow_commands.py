@@ -8,6 +8,7 @@ runs on the runner its options name (flows.runners). Heavy imports happen inside
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
@@ -64,6 +65,16 @@ def preflight(command: str, home: str | None) -> None:
     quiet_failed_run_logs()  # main() prints a failing run's error, in one line
 
 
+def log_slug(command: str) -> str:
+    """A log file's name for `command`: a preset given as a path by its file's stem (`--preset
+    /abs/p.yaml` named a file under folders that do not exist), no character a file name should avoid."""
+    head, _, preset = command.partition(" --preset ")
+    if "/" in preset or preset.endswith((".yaml", ".yml")):
+        preset = Path(preset).stem
+    slug = "-".join([*head.split(), *([preset] if preset else [])])
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", slug).strip("._-")[:80] or "run"
+
+
 def _start_log(command: str, home: str | None) -> None:
     """Progress to a log file in the home as well as the terminal (step workers inherit the path)."""
     from tasks.progress import LOG_FILE_ENV, emit
@@ -74,7 +85,7 @@ def _start_log(command: str, home: str | None) -> None:
         logs = workspace(home).local_root / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-        slug = "-".join(command.replace("--preset", "").split())
+        slug = log_slug(command)
         os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
         from flows.housekeeping import prune_on_start
 

@@ -119,6 +119,9 @@ class StudySettings(BaseModel):
                 f"study.draws ({len(self.draws)}) must split into replicates of study.draws_per_replicate "
                 f"({self.draws_per_replicate}) draws"
             )
+        twice = sorted({arm for arm in self.arms if self.arms.count(arm) > 1})
+        if twice:
+            raise ValueError(f"study.arms lists {', '.join(twice)} more than once: each arm is run once")
         missing = {"sft", "capvector"} - set(self.arms)
         if missing:
             raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")
