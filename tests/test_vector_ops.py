@@ -360,7 +360,6 @@ def test_vector_commands_register_inputs_and_output_once_they_succeed(user):
 def test_identical_rerun_registers_an_output_written_but_never_registered(user, sharded):
     """Killed between writing `-o` and registering it: the same command again registers that output."""
     from tasks.vector_commands import extract_cli, merge_cli
-
     from tasks.workspace import Workspace
 
     workspace, folder, p = user
