@@ -250,7 +250,7 @@ def _preconditions(
         Precondition(
             key="b",
             claim="auxiliary SFT beats SFT on D_ext validation goals (θ_ao vs θ_ft; reported, not gating: "
-            "it sits at a ceiling where θ_ft solves D_ext)",
+            "on the calibrated testbeds θ_ft sits near D_ext's ceiling, where (b) cannot show a difference)",
             holds=_verdict(ext) if ext else None,
             detail=ext.summary() if ext else "not measured",
             comparison=ext,
