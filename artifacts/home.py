@@ -7,6 +7,7 @@ from pathlib import Path
 
 import fsspec
 from fsspec.implementations.local import LocalFileSystem
+from fsspec.spec import AbstractFileSystem
 
 
 def default_home() -> str:
@@ -16,6 +17,23 @@ def default_home() -> str:
 
 def is_local(url: str) -> bool:
     return isinstance(fsspec.core.url_to_fs(url)[0], LocalFileSystem)
+
+
+def filesystem(url: str) -> tuple[AbstractFileSystem, str]:
+    """The fsspec filesystem of `url` and the path on it; a remote one without a listing cache.
+
+    Other processes and machines commit to a shared store: s3fs (gcsfs, adlfs alike) caches every
+    listing it makes and never refreshes it, and answers `exists`/`info` from a cached listing of the
+    parent, so an artifact another process committed after this one listed its shard stayed
+    invisible (`no artifact …` for one that was in the bucket). Every check asks the server instead.
+    A local filesystem keeps no listings: it is returned as it is."""
+    fs, path = fsspec.core.url_to_fs(url)
+    if isinstance(fs, LocalFileSystem):
+        return fs, path
+    try:
+        return fsspec.core.url_to_fs(url, use_listings_cache=False)
+    except TypeError:  # a filesystem without that option (fsspec's own all take it): as it is
+        return fs, path
 
 
 def store_url(home: str) -> str:

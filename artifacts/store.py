@@ -58,7 +58,6 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
-import fsspec
 from fsspec.implementations.local import LocalFileSystem
 from pydantic import BaseModel
 
@@ -351,7 +350,7 @@ class ArtifactStore:
         self, root: str | os.PathLike[str] | None = None, cache_dir: str | os.PathLike[str] | None = None
     ):
         self.url = str(root) if root is not None else home_mod.store_url(home_mod.default_home())
-        self.fs, root_path = fsspec.core.url_to_fs(self.url)
+        self.fs, root_path = home_mod.filesystem(self.url)
         self.local = isinstance(self.fs, LocalFileSystem)
         self.root = os.path.abspath(root_path) if self.local else root_path.rstrip("/")
         self.cache_dir = Path(cache_dir) if cache_dir else home_mod.local_cache_dir(self.url) / "objects"

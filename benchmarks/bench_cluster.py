@@ -120,7 +120,7 @@ def main() -> None:
     from flows.study import study_steps
     from flows.study_config import load_study
 
-    steps = study_steps(load_study(args.preset))
+    steps = sum(study_steps(load_study(args.preset)))  # before the gate + after it (if it passes)
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="bench-cluster-"))
     load_before = os.getloadavg()[0]
     rows: dict[str, dict[str, list[float]]] = {

@@ -37,7 +37,7 @@ from safetensors.torch import load_file
 from torch import nn
 
 from capvector_core.device import resolve_device
-from capvector_core.safetensors_io import write_checkpoint
+from capvector_core.safetensors_io import Checkpoint, write_checkpoint
 
 CONFIG_METADATA_KEY = "capvector.policy_config"
 ENTRY_POINT_GROUP = "capvector.policies"
@@ -205,6 +205,10 @@ def _load_entry_points() -> None:
             raise ImportError(
                 f"policy plugin entry point {ep.name!r} ({ep.value}) failed to load: {exc}"
             ) from exc
+        except SystemExit as exc:  # sys.exit() at import: it would end the command, silently, with its code
+            raise ImportError(
+                f"policy plugin entry point {ep.name!r} ({ep.value}) called sys.exit({exc.code!r}) at import"
+            ) from None
 
 
 def policy_class(type_name: str) -> type[Policy]:
@@ -271,23 +275,67 @@ def save_policy(model: Policy, path: str | Path, metadata: Mapping[str, str] | N
     return path
 
 
+REGISTER_HINT = (
+    "register a policy type: a PolicyConfig + Policy pair under @register_policy, declared as a "
+    f"`{ENTRY_POINT_GROUP}` entry point (docs/guide/own-checkpoints.md, 'Your own policy type')"
+)
+
+
+class PolicyLoadError(ValueError):
+    """A checkpoint no registered policy type can load (no config, or a type nobody registered)."""
+
+
 def read_metadata(path: str | Path) -> dict[str, str]:
+    """The safetensors metadata of a file, or of a checkpoint folder (single file or sharded)."""
+    if Path(path).is_dir():
+        return dict(Checkpoint(path).metadata)
     with safe_open(str(path), framework="pt") as fh:
         return dict(fh.metadata() or {})
 
 
 def read_policy_config(path: str | Path) -> PolicyConfig:
+    """The config a checkpoint's policy is built from: its weights' `CONFIG_METADATA_KEY` metadata, or,
+    for a folder, its `config.json` when that names a `type` (LeRobot's layout). A type that no
+    installed package registers, or no config at all, is refused in one line saying how to register one."""
+    path = Path(path)
     meta = read_metadata(path)
-    if CONFIG_METADATA_KEY not in meta:
-        raise ValueError(
-            f"{path}: no {CONFIG_METADATA_KEY!r} in safetensors metadata; not a capvector policy file"
+    if CONFIG_METADATA_KEY in meta:
+        value, where = json.loads(meta[CONFIG_METADATA_KEY]), f"{CONFIG_METADATA_KEY!r} metadata"
+    elif path.is_dir() and isinstance(doc := _config_json(path), dict) and isinstance(doc.get("type"), str):
+        value, where = doc, "config.json"
+    else:
+        found = "folder has no `type` in config.json and its weights have" if path.is_dir() else "file has"
+        raise PolicyLoadError(
+            f"{path}: not a capvector policy: the {found} no {CONFIG_METADATA_KEY!r} metadata naming a "
+            f"policy type; {REGISTER_HINT}"
         )
-    return parse_policy_config(meta[CONFIG_METADATA_KEY])
+    type_name = value.get("type", DEFAULT_POLICY_TYPE) if isinstance(value, dict) else None
+    try:
+        policy_class(type_name)
+    except ValueError:
+        raise PolicyLoadError(
+            f"{path}: its {where} names policy type {type_name!r}, which no installed package registers "
+            f"(known: {', '.join(policy_types())}); {REGISTER_HINT}"
+        ) from None
+    return parse_policy_config(value)
+
+
+def _config_json(folder: Path) -> Any:
+    try:
+        return json.loads((folder / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _read_tensors(path: str | Path) -> dict[str, torch.Tensor]:
+    if Path(path).is_dir():  # a folder: one model.safetensors or shards with an index
+        return dict(Checkpoint(path).items())  # each tensor read into a buffer of its own
+    return load_file(str(path))
 
 
 def load_policy_weights(model: nn.Module, path: str | Path) -> nn.Module:
     """Load a checkpoint into a model exactly; on any mismatch, list it and load nothing."""
-    tensors = load_file(str(path))
+    tensors = _read_tensors(path)
     expected = model.state_dict()
     missing = sorted(set(expected) - set(tensors))
     unexpected = sorted(set(tensors) - set(expected))

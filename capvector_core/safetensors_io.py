@@ -416,6 +416,49 @@ class Checkpoint:
         doc = json.dumps({f.relative_to(self.path).as_posix(): h for f, h in hashes.items()}, sort_keys=True)
         return hashlib.sha256(doc.encode()).hexdigest()
 
+    def content_sha256(self, chunk: int = 8 << 20) -> str:
+        """Hash of the tensors themselves, not of how they are stored: sha256 of the JSON
+        `{name: [dtype, shape, sha256 of its bytes]}` (names sorted). The same weights as one file, as a
+        folder or in other shards, with other metadata, have the same content hash."""
+        doc = {}
+        buf = np.empty(chunk, np.uint8)
+        for name in sorted(self.specs):
+            spec, h = self.specs[name], hashlib.sha256()
+            with open(spec.file, "rb", buffering=0) as f:
+                for b in range(spec.begin, spec.end, chunk):
+                    n = min(chunk, spec.end - b)
+                    f.seek(b)
+                    view, got = memoryview(buf)[:n], 0
+                    while got < n:
+                        k = f.readinto(view[got:])
+                        if not k:
+                            raise CheckpointError(f"{spec.file} ended while reading tensor {name!r}")
+                        got += k
+                    h.update(view)
+            doc[name] = [spec.dtype, list(spec.shape), h.hexdigest()]
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+    def rename(self, strip_prefix: str | None = None, add_prefix: str | None = None, role: str = "") -> None:
+        """Map tensor names (in place): `strip_prefix` taken off the names that start with it (some must),
+        then `add_prefix` put in front of every name. For checkpoints whose keys differ by a wrapper
+        prefix (`model.enc.weight` vs `enc.weight`); reading is unaffected."""
+        what = f" of {role}" if role else ""
+        specs = self.specs
+        if strip_prefix:
+            if not any(n.startswith(strip_prefix) for n in specs):
+                raise CheckpointError(f"--strip-prefix {strip_prefix!r} begins no tensor name{what}")
+            specs = {
+                (n[len(strip_prefix) :] if n.startswith(strip_prefix) else n): s for n, s in specs.items()
+            }
+        if add_prefix:
+            specs = {add_prefix + n: s for n, s in specs.items()}
+        if len(specs) != len(self.specs):
+            raise CheckpointError(
+                f"--strip-prefix {strip_prefix!r} gives two tensors{what} the same name: "
+                "a name with the prefix and one without it"
+            )
+        self.specs = specs
+
 
 def file_sha256(path: str | os.PathLike, chunk: int = 8 << 20) -> str:
     h = hashlib.sha256()
@@ -528,6 +571,46 @@ def _header_bytes(entries: list[tuple[str, str, tuple[int, ...], int, int]], met
     return raw + b" " * (-len(raw) % 8)  # pad so tensor data starts 8-byte aligned
 
 
+def _plan_shards(sizes: Mapping[str, int], max_shard_bytes: int) -> tuple[list[list[str]], list[str]]:
+    """Tensor names per shard and the shards' file names, as Hugging Face plans them
+    (`split_state_dict_into_shards_factory`: the same grouping, file names and single-shard
+    `model.safetensors` as `save_torch_state_dict`, which we cannot call itself: it needs every tensor
+    in memory at once, and we write each one as it is computed). The plan needs only the sizes.
+    Tensors keep their order; one larger than a shard gets a shard of its own."""
+    from huggingface_hub import split_state_dict_into_shards_factory
+
+    split = split_state_dict_into_shards_factory(
+        dict(sizes),
+        get_storage_size=lambda size: size,
+        filename_pattern="model{suffix}.safetensors",
+        max_shard_size=max_shard_bytes,
+        get_storage_id=lambda size: None,  # every tensor has storage of its own
+    )
+    if not sizes:  # nothing to split: one empty shard, as before
+        return [[]], [SINGLE_NAME]
+    names = list(split.filename_to_tensors)
+    return [split.filename_to_tensors[n] for n in names], names
+
+
+def parse_size(text: str | int) -> int:
+    """A shard size: bytes, or a number with KB/MB/GB/TB (powers of 1000, as Hugging Face reads them)
+    or KiB/MiB/GiB/TiB (powers of 1024)."""
+    if isinstance(text, int):
+        value = text
+    else:
+        s = str(text).strip().upper().replace(" ", "")
+        units = {"KIB": 1 << 10, "MIB": 1 << 20, "GIB": 1 << 30, "TIB": 1 << 40}
+        units |= {"KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12, "B": 1, "": 1}
+        unit = next(u for u in sorted(units, key=len, reverse=True) if s.endswith(u))
+        try:
+            value = int(float(s[: len(s) - len(unit)]) * units[unit])
+        except ValueError:
+            raise ValueError(f"not a size: {text!r} (e.g. 5GB, 500MiB, 1000000)") from None
+    if value <= 0:
+        raise ValueError(f"a shard size must be positive, got {text!r}")
+    return value
+
+
 class ShardedWriter:
     """Write tensors one at a time into a safetensors file or a sharded directory, atomically.
 
@@ -554,21 +637,10 @@ class ShardedWriter:
         self.single_file = self.out.suffix == ".safetensors"
         self._specs = {n: (_known_dtype(d), tuple(s)) for n, (d, s) in specs.items()}
         sizes = {n: math.prod(s) * STORAGE[d].itemsize for n, (d, s) in self._specs.items()}
-        shards: list[list[str]] = [[]]
-        used = 0
-        for name in specs:
-            if not self.single_file and shards[-1] and used + sizes[name] > max_shard_bytes:
-                shards.append([])
-                used = 0
-            shards[-1].append(name)
-            used += sizes[name]
-        n = len(shards)
         if self.single_file:
-            self.shard_names = [self.out.name]
-        elif n == 1:
-            self.shard_names = [SINGLE_NAME]
+            shards, self.shard_names = [list(specs)], [self.out.name]
         else:
-            self.shard_names = [f"model-{i + 1:05d}-of-{n:05d}.safetensors" for i in range(n)]
+            shards, self.shard_names = _plan_shards(sizes, max_shard_bytes)
         self._shards = shards
         self._sizes = sizes
         self._order = [name for shard in shards for name in shard]
@@ -577,6 +649,7 @@ class ShardedWriter:
         self._files: list = []
         self._header_len: list[int] = []
         self._queued: dict = {}  # file -> offset up to which its writeback was started
+        self._extra: dict[str, bytes | Path] = {}  # other files of a folder output (`add_file`)
 
     @property
     def order(self) -> list[str]:
@@ -655,6 +728,22 @@ class ShardedWriter:
             raise CheckpointError(f"tensor {name!r}: wrote {written} bytes, declared {self._sizes[name]}")
         self._pos += 1
 
+    def add_file(self, name: str, content: bytes | str | os.PathLike) -> None:
+        """Put another file (bytes, or a file's path to copy) into a folder output, at `name` (relative,
+        `/`-separated); written when the writer closes, inside the same atomic rename as the shards."""
+        if self.single_file:
+            raise CheckpointError(f"{self.out} is one .safetensors file: it cannot hold {name!r} beside it")
+        parts = Path(name).parts
+        if not parts or Path(name).is_absolute() or ".." in parts:
+            raise CheckpointError(f"{name!r} is not a relative file name inside the output folder")
+        if name in self.shard_names or name == INDEX_NAME:
+            raise CheckpointError(f"{name!r} would replace a weight file of the output")
+        self._extra[name] = (
+            content
+            if isinstance(content, bytes)
+            else (content.encode() if isinstance(content, str) else Path(content))
+        )
+
     def set_metadata(self, key: str, value: str) -> None:
         """Replace a metadata value by one of the same encoded length (rewritten in place at close)."""
         old = self.metadata.get(key)
@@ -705,6 +794,13 @@ class ShardedWriter:
                 "weight_map": {name: self.shard_names[i] for name, i in self._shard_of.items()},
             }
             (self._dir / INDEX_NAME).write_text(json.dumps(index, indent=2))
+        for name, content in self._extra.items():
+            dst = self._dir / name
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if isinstance(content, bytes):
+                dst.write_bytes(content)
+            else:
+                shutil.copyfile(content, dst)  # the content, links followed
         self._ctx.__exit__(None, None, None)
 
 

@@ -46,7 +46,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel
 
-from capvector_core import module_patterns
+from capvector_core import model_card, module_patterns
 from capvector_core.safetensors_io import (
     DEFAULT_MAX_SHARD_BYTES,
     FLOATS,
@@ -87,15 +87,86 @@ def _is_float(spec: TensorSpec) -> bool:
     return spec.is_float
 
 
-def _compare(ref: Checkpoint, other: Checkpoint, role: str, names: Iterable[str]) -> None:
-    """Shapes and dtypes of `names` must agree; raise naming a few offending tensors and the count."""
-    bad = []
+def _compare(
+    ref: Checkpoint, other: Checkpoint, role: str, names: Iterable[str], compute: str | None = None
+) -> None:
+    """Shapes and dtypes of `names` must agree (float dtypes may differ given a compute dtype); raise
+    naming a few offending tensors, the count, and the flag that would accept them."""
+    bad, floats_only = [], True
     for n in names:
         a, b = ref.specs[n], other.specs[n]
-        if a.shape != b.shape or a.dtype != b.dtype:
+        mixed_floats = a.dtype != b.dtype and a.is_float and b.is_float
+        if a.shape != b.shape or (a.dtype != b.dtype and not (mixed_floats and compute)):
             bad.append(f"{n} ({a.dtype}{list(a.shape)} vs {b.dtype}{list(b.shape)})")
+            floats_only &= a.shape == b.shape and mixed_floats
     if bad:
-        raise VectorOpError(f"{len(bad)} tensor(s) of {role} differ in shape or dtype: {', '.join(bad[:5])}")
+        hint = (
+            "; pass --dtype float32 to compute floats of different dtypes in float32 (and --out-dtype to "
+            "choose the output's)"
+            if floats_only
+            else ""
+        )
+        raise VectorOpError(
+            f"{len(bad)} tensor(s) of {role} differ in shape or dtype: {', '.join(bad[:5])}{hint}"
+        )
+
+
+COMPUTE_DTYPES = {"float32": np.float32, "float64": np.float64}
+_DTYPE_NAMES = {
+    "float32": "F32", "fp32": "F32", "f32": "F32",
+    "float64": "F64", "fp64": "F64", "f64": "F64", "double": "F64",
+    "float16": "F16", "fp16": "F16", "f16": "F16", "half": "F16",
+    "bfloat16": "BF16", "bf16": "BF16",
+}  # fmt: skip
+
+
+def float_dtype(name: str | None, flag: str = "--out-dtype") -> str | None:
+    """A float dtype as safetensors spells it (`F32`), from `float32`, `fp32`, `bf16`, `F32`, ..."""
+    if name is None:
+        return None
+    key = str(name).strip()
+    found = _DTYPE_NAMES.get(key.lower()) or (key.upper() if key.upper() in FLOATS else None)
+    if found is None:
+        raise VectorOpError(f"{flag} {name!r}: not a float dtype (float32, float64, float16, bfloat16)")
+    return found
+
+
+def compute_dtype(name: str | None) -> str | None:
+    """The `--dtype` arithmetic is done in: float32 or float64 (None: float32, float64 for F64)."""
+    found = float_dtype(name, "--dtype")
+    if found not in (None, "F32", "F64"):
+        raise VectorOpError(
+            f"--dtype {name!r}: compute in float32 or float64 (--out-dtype sets the output's)"
+        )
+    return {None: None, "F32": "float32", "F64": "float64"}[found]
+
+
+def _wide_for(compute: str | None, *dtypes: str) -> type:
+    """The numpy type a tensor is computed in: `compute` if given, else float64 if an input is F64."""
+    if compute is not None:
+        return COMPUTE_DTYPES[compute]
+    return np.float64 if "F64" in dtypes else np.float32
+
+
+def _to(x: np.ndarray, dtype: str, wide: type, scratch: _Scratch, key: str) -> np.ndarray:
+    """Stored values of `dtype` as `wide` (x itself when it already is; else into scratch[key])."""
+    w = x if dtype in ("F32", "F64") else _widen(x, dtype, scratch(key, x.size, np.float32))
+    if w.dtype == wide:
+        return w
+    out = scratch(key + ".wide", x.size, wide)
+    np.copyto(out, w, casting="same_kind")
+    return out
+
+
+def _byte_bounds(ckpts: Sequence[Checkpoint], name: str) -> list[list[tuple[int, int]]]:
+    """Per checkpoint, byte ranges covering tensor `name` that hold the same elements in each (their
+    dtypes may differ), each at most ~CHUNK_BYTES in the widest."""
+    specs = [c.specs[name] for c in ckpts]
+    item = max(s.itemsize for s in specs)
+    numel = specs[0].nbytes // specs[0].itemsize
+    step = max(1, CHUNK_BYTES // item)
+    elements = [(b, min(b + step, numel)) for b in range(0, numel, step)] or [(0, 0)]
+    return [[(b * s.itemsize, e * s.itemsize) for b, e in elements] for s in specs]
 
 
 def _key_diff(ref: Checkpoint, other: Checkpoint, role: str, allow_missing: bool = False) -> None:
@@ -107,7 +178,8 @@ def _key_diff(ref: Checkpoint, other: Checkpoint, role: str, allow_missing: bool
     if extra:
         msgs.append(f"{len(extra)} unexpected tensor(s) in {role}: {_few(extra)}")
     if msgs:
-        raise VectorOpError("; ".join(msgs))
+        prefixes = " (names that differ by a prefix: --strip-prefix / --add-prefix)" if extra else ""
+        raise VectorOpError("; ".join(msgs) + prefixes)
 
 
 class _HashingReader:
@@ -356,10 +428,21 @@ def _widen(x: np.ndarray, dtype: str, out: np.ndarray | None = None) -> np.ndarr
 
 
 def _narrow(acc: np.ndarray, dtype: str, scratch: _Scratch | None = None) -> np.ndarray:
-    """A float32/64 result as stored values of `dtype`, rounded to nearest even (as torch rounds)."""
-    if dtype in ("F32", "F64"):
-        return acc
+    """A float32/64 result as stored values of `dtype`, rounded to nearest even (as torch rounds; a
+    float64 result goes to bfloat16 through float32)."""
     scratch = scratch or _Scratch()
+    if dtype in ("F32", "F64"):
+        if acc.dtype == STORAGE[dtype]:
+            return acc
+        out = scratch("narrow", acc.size, STORAGE[dtype])
+        with np.errstate(over="ignore"):  # an overflow to Inf is refused by the caller, naming the tensor
+            np.copyto(out, acc, casting="same_kind")
+        return out
+    if dtype == "BF16" and acc.dtype == np.float64:
+        acc32 = scratch("narrow32", acc.size, np.float32)
+        with np.errstate(over="ignore"):
+            np.copyto(acc32, acc, casting="same_kind")
+        acc = acc32
     out = scratch("narrow", acc.size, STORAGE[dtype])
     if dtype == "F16":
         with np.errstate(over="ignore"):  # an overflow to Inf is refused by the caller, naming the tensor
@@ -410,16 +493,17 @@ def _cast_back(
     acc: np.ndarray,
     dtype: str,
     name: str,
-    inputs: list[tuple[str, np.ndarray]],
+    inputs: list[tuple[str, np.ndarray, str]],
     scratch: _Scratch | None = None,
 ) -> np.ndarray:
-    """Round a float32/64 result to the output dtype; if it is not finite, name the input responsible."""
+    """Round a float32/64 result to the output dtype; if it is not finite, name the input responsible.
+    `inputs`: (role, stored values, their dtype)."""
     if _all_finite(acc):
         out = _narrow(acc, dtype, scratch)
-        if dtype in ("F32", "F64") or _stored_finite(out, dtype):
+        if out is acc or _stored_finite(out, dtype):
             return out
-    for role, x in inputs:
-        _finite_or_raise(x, dtype, name, role)
+    for role, x, x_dtype in inputs:
+        _finite_or_raise(x, x_dtype, name, role)
     raise VectorOpError(f"result for tensor {name!r} overflows {dtype}")
 
 
@@ -427,6 +511,15 @@ def _inputs_meta(readers: dict[str, _HashingReader]) -> dict[str, dict[str, str]
     """role -> {"sha256": ...}: content digests only. A path (a store's, a home's, a user's folder) would
     make the output's bytes, so its content id, depend on where the inputs happened to be read from."""
     return {role: {"sha256": _PLACEHOLDER} for role in readers}
+
+
+class Card(BaseModel):
+    """What a folder output's README.md card says besides the formula and the input hashes."""
+
+    command: str  # the command, inputs by role (`{base}`, `{vector_0}`): replaced by their ids or hashes
+    settings: dict[str, object] = {}
+    alphas: dict[str, float] = {}  # role -> coefficient
+    extra_inputs: dict[str, str] = {}  # role -> sha256 of inputs not streamed (extract's --base)
 
 
 def _run(
@@ -440,11 +533,25 @@ def _run(
     overwrite: bool,
     check=None,
     hashes: dict[Path, str] | None = None,
+    dtypes: Mapping[str, str] | None = None,
+    carry_from: Path | None = None,
+    card: Card | None = None,
+    input_ids=None,
 ) -> Path:
-    """Stream `compute(name) -> flat pieces` for every name into `out`, then fill in the input hashes."""
+    """Stream `compute(name) -> flat pieces` for every name into `out`, then fill in the input hashes.
+
+    A folder output also gets the files of `carry_from` that are not weights (`model_card.companion_files`)
+    and, with `card`, a README.md naming the inputs by `input_ids(role)` (artifact ids; None: unknown) and
+    sha256. `dtypes`: output dtype per name (default: `ref`'s)."""
     inputs = _inputs_meta(readers)
     metadata = {**metadata, "capvector.inputs": json.dumps(inputs, sort_keys=True)}
-    specs = {n: (ref.specs[n].dtype, ref.specs[n].shape) for n in names}
+    specs = {n: ((dtypes or {}).get(n, ref.specs[n].dtype), ref.specs[n].shape) for n in names}
+    folder = Path(out).suffix != ".safetensors"
+    carried = []
+    if folder and carry_from is not None and carry_from.is_dir():
+        # the weights by their names in `ref` (a copy of it being filled as it is read is no checkpoint yet)
+        weights = [f.relative_to(ref.path).as_posix() for f in ref.files] if ref.path.is_dir() else None
+        carried = model_card.companion_files(carry_from, weights)
     with ShardedWriter(out, specs, metadata, max_shard_bytes, overwrite) as w:
         for n in w.order:
             w.write_chunks(n, compute(n))
@@ -454,10 +561,36 @@ def _run(
         for role, d in digests.items():
             inputs[role]["sha256"] = d
         w.set_metadata("capvector.inputs", json.dumps(inputs, sort_keys=True))
-    if hashes is not None:
-        for r in readers.values():
-            _record(hashes, r.file_digests() | r.copied())
+        if hashes is not None:
+            for r in readers.values():
+                _record(hashes, r.file_digests() | r.copied())
+        for rel in carried:
+            w.add_file(rel, carry_from / rel)
+        if folder and card is not None:
+            w.add_file(model_card.CARD_NAME, _card_text(metadata, digests, card, input_ids, carried))
     return Path(out)
+
+
+def _fill(command: str, names: Mapping[str, str]) -> str:
+    for role, name in names.items():
+        command = command.replace("{" + role + "}", name)
+    return command
+
+
+def _card_text(metadata: dict[str, str], digests: dict[str, str], card: Card, input_ids, carried) -> str:
+    rows, names = [], {}
+    for role, sha in {**digests, **card.extra_inputs}.items():
+        found = input_ids(role) if input_ids is not None else None
+        rows.append({"role": role, "alpha": card.alphas.get(role), "id": found, "sha256": sha})
+        names[role] = found or sha
+    return model_card.render_card(
+        metadata["capvector.kind"],
+        metadata["capvector.formula"],
+        rows,
+        _fill(card.command, names),
+        card.settings,
+        carried,
+    )
 
 
 def _resolve_hash(
@@ -501,40 +634,60 @@ def extract(
     overwrite: bool = False,
     hashes: dict[Path, str] | None = None,
     copies: Mapping[Path, Path] | None = None,
+    dtype: str | None = None,
+    out_dtype: str | None = None,
+    strip_prefix: str | None = None,
+    add_prefix: str | None = None,
+    carry_from: PathLike | None = None,
+    card: Card | None = None,
+    input_ids=None,
 ) -> Path:
     """Write the vector `minuend − subtrahend` (capability vector θ_ao − θ_ft, or task vector θ − θ_pt).
 
     `base` (a checkpoint path or a sha256) records the θ_pt the vector is meant for, so that `merge` can
-    refuse another base; for a task vector it is the subtrahend. With a filter the vector holds only the
+    refuse another base: by its files' hash (`capvector.base_sha256`) and by its tensors' content hash
+    (`capvector.base_content_sha256`, the same for the same weights as a file or a folder); for a task
+    vector it is the subtrahend. With a filter the vector holds only the
     selected tensors and is marked `capvector.partial`. `hashes` receives the sha256 of every input file
     as it was read (a caller checks stored inputs with them); `copies` (input file -> new path) has a
     copy of each named file written as it is read, and `hashes` the sha256 of each copy path (a caller
     stores the copies under them: exactly the bytes computed from, read once).
+
+    Real checkpoints: `dtype` (float32 | float64) is the dtype the difference is computed in, and lets
+    float tensors of different dtypes meet (a bf16 fine-tune against an fp32 base); `out_dtype` the
+    float dtype written (default: the minuend's). `strip_prefix` / `add_prefix` map the subtrahend's
+    names onto the minuend's (`model.enc.weight` vs `enc.weight`); the vector has the minuend's names.
+    A folder output gets the non-weight files of `carry_from` (default: the minuend, if a folder) and,
+    with `card`, a README.md card (`Card`; `input_ids(role)` names an input's artifact id).
     """
+    compute_as, out_as = compute_dtype(dtype), float_dtype(out_dtype)
     a, b = Checkpoint(minuend), Checkpoint(subtrahend)
+    b.rename(strip_prefix, add_prefix, f"subtrahend {b.path}")
     _key_diff(a, b, f"subtrahend {b.path}")
     names = select_names(a.keys(), include, exclude)
-    _compare(a, b, f"subtrahend {b.path}", names)
+    _compare(a, b, f"subtrahend {b.path}", names, compute_as)
     copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
     base_hash = _resolve_hash(base, hashes, copies)
+    base_content = Checkpoint(base).content_sha256() if base is not None and Path(base).exists() else None
     pool = ThreadPoolExecutor(1)
     ra, rb = _HashingReader(a, pool, copies), _HashingReader(b, pool, copies)
+    dtypes = {n: out_as for n in names if out_as and a.specs[n].is_float}
 
     scratch = _Scratch()
 
     def compute(n: str) -> Iterator[np.ndarray]:
-        bounds, dtype = a.chunk_bounds(n, CHUNK_BYTES), a.specs[n].dtype
-        for x, y in zip(ra.chunks(n, bounds), rb.chunks(n, bounds), strict=True):
-            if dtype not in FLOATS:
+        (ba, bb), (da, db) = _byte_bounds([a, b], n), (a.specs[n].dtype, b.specs[n].dtype)
+        to, wide = dtypes.get(n, da), _wide_for(compute_as, da, db)
+        for x, y in zip(ra.chunks(n, ba), rb.chunks(n, bb), strict=True):
+            if da not in FLOATS:
                 if not np.array_equal(x, y):
                     raise VectorOpError(f"non-float tensor {n!r} differs between minuend and subtrahend")
                 yield x
                 continue
             # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
-            k, wide = x.size, _wide(dtype)
-            xw, yw = _widen(x, dtype, scratch("x", k, wide)), _widen(y, dtype, scratch("y", k, wide))
-            acc = np.subtract(xw, yw, out=scratch("acc", k, wide))
-            yield _cast_back(acc, dtype, n, [("minuend", x), ("subtrahend", y)], scratch)
+            xw, yw = _to(x, da, wide, scratch, "x"), _to(y, db, wide, scratch, "y")
+            acc = np.subtract(xw, yw, out=scratch("acc", x.size, wide))
+            yield _cast_back(acc, to, n, [("minuend", x, da), ("subtrahend", y, db)], scratch)
 
     meta = {
         "capvector.kind": "vector",
@@ -546,9 +699,17 @@ def extract(
     }
     if base_hash:
         meta["capvector.base_sha256"] = base_hash
+    if base_content:
+        meta["capvector.base_content_sha256"] = base_content
+    if card is not None and base_hash:
+        card = card.model_copy(update={"extra_inputs": {**card.extra_inputs, "base": base_hash}})
     readers = {"minuend": ra, "subtrahend": rb}
+    carry = Path(carry_from) if carry_from is not None else a.path
     try:
-        return _run(out, names, a, readers, meta, compute, max_shard_bytes, overwrite, hashes=hashes)
+        return _run(
+            out, names, a, readers, meta, compute, max_shard_bytes, overwrite, hashes=hashes, dtypes=dtypes,
+            carry_from=carry, card=card, input_ids=input_ids,
+        )  # fmt: skip
     finally:
         for r in readers.values():
             r.close()
@@ -566,30 +727,45 @@ def merge(
     overwrite: bool = False,
     hashes: dict[Path, str] | None = None,
     copies: Mapping[Path, Path] | None = None,
+    dtype: str | None = None,
+    out_dtype: str | None = None,
+    strip_prefix: str | None = None,
+    add_prefix: str | None = None,
+    carry_from: PathLike | None = None,
+    card: Card | None = None,
+    input_ids=None,
 ) -> Path:
     """Write θ = base + Σ_i α_i·vector_i (θ_meta = θ_pt + α·γ); tensors outside the filter are base's.
 
     A vector must have exactly base's tensors (a `capvector.partial` vector: a subset), same shapes and
-    dtypes. A vector whose metadata names another base (`capvector.base_sha256`) is refused unless
-    `force=True`; base's hash is computed while streaming, so that check happens at the end, before the
-    output is renamed into place. The output keeps base's metadata but for base's own provenance
+    dtypes. A vector whose metadata names another base is refused unless `force=True` (`--force`): it
+    names its base by files' hash (`capvector.base_sha256`) and by content hash
+    (`capvector.base_content_sha256`); either matching accepts base, so the same weights as a file or a
+    folder are the same base. Base's file hash is computed while streaming, so that check happens at
+    the end, before the output is renamed into place (the content hash is read only if it is needed).
+    The output keeps base's metadata but for base's own provenance
     (`capvector.*` keys other than `CARRIED_KEYS`, which would be false of the output), so a merged policy
     checkpoint loads as its base does (`capvector_core.policy.load_policy`). `hashes`, `copies`: as in
-    `extract`.
+    `extract`. `dtype`, `out_dtype` (default: base's dtype), `strip_prefix` / `add_prefix` (applied to
+    the vectors' names, to match base's), `carry_from` (default: base, if a folder), `card`,
+    `input_ids`: as in `extract`.
     """
     if not vectors:
         raise VectorOpError("merge needs at least one (vector, coefficient) pair")
     bad = [f"vector {i}: {alpha}" for i, (_, alpha) in enumerate(vectors) if not math.isfinite(float(alpha))]
     if bad:  # NaN/inf would only show as a non-finite tensor once streaming reached it
         raise VectorOpError(f"merge coefficients must be finite numbers ({', '.join(bad)})")
+    compute_as, out_as = compute_dtype(dtype), float_dtype(out_dtype)
     b = Checkpoint(base)
     vecs = [(Checkpoint(p), float(alpha)) for p, alpha in vectors]
     for i, (v, _) in enumerate(vecs):
+        v.rename(strip_prefix, add_prefix, f"vector {i} ({v.path})")
         partial = json.loads(v.metadata.get("capvector.partial", "false"))
         _key_diff(b, v, f"vector {i} ({v.path})", allow_missing=partial)
-        _compare(b, v, f"vector {i} ({v.path})", v.keys())
+        _compare(b, v, f"vector {i} ({v.path})", v.keys(), compute_as)
     names = b.keys()
     selected = set(select_names(names, include, exclude))
+    dtypes = {n: out_as for n in names if out_as and b.specs[n].is_float}
     pool = ThreadPoolExecutor(1)
     copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
     rb = _HashingReader(b, pool, copies)
@@ -597,41 +773,60 @@ def merge(
     scratch = _Scratch()
 
     def compute(n: str) -> Iterator[np.ndarray]:
-        bounds, dtype = b.chunk_bounds(n, CHUNK_BYTES), b.specs[n].dtype
+        dtype, to = b.specs[n].dtype, dtypes.get(n, b.specs[n].dtype)
         users = [(i, r, a) for i, (r, (v, a)) in enumerate(zip(rvs, vecs, strict=True)) if n in v]
         if n not in selected:
             users = []
-        streams = [(i, r.chunks(n, bounds), a) for i, r, a in users]
-        for x in rb.chunks(n, bounds):
-            terms = [(i, next(it), a) for i, it, a in streams]
-            if not terms:
+        bounds = _byte_bounds([b, *(r.ckpt for _, r, _ in users)], n)
+        kinds = [r.ckpt.specs[n].dtype for _, r, _ in users]
+        wide = _wide_for(compute_as, dtype, *kinds)
+        streams = [
+            (i, r.chunks(n, bd), a, d) for (i, r, a), bd, d in zip(users, bounds[1:], kinds, strict=True)
+        ]
+        for x in rb.chunks(n, bounds[0]):
+            terms = [(i, next(it), a, d) for i, it, a, d in streams]
+            if not terms and to == dtype:
                 _finite_or_raise(x, dtype, n, "base")
                 yield x
                 continue
             if dtype not in FLOATS:
-                for i, y, _ in terms:
+                for i, y, _, _ in terms:
                     if not np.array_equal(x, y):
                         raise VectorOpError(f"non-float tensor {n!r} differs between base and vector {i}")
                 yield x
                 continue
             # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
-            k, wide = x.size, _wide(dtype)
-            xw, acc = _widen(x, dtype, scratch("x", k, wide)), scratch("acc", k, wide)
-            for j, (_, y, a) in enumerate(terms):
-                yw = _widen(y, dtype, scratch("y", k, wide))
-                term = np.multiply(yw, wide(a), out=scratch("term", k, wide))
+            xw, acc = _to(x, dtype, wide, scratch, "x"), scratch("acc", x.size, wide)
+            if not terms:  # base only, cast to --out-dtype
+                np.copyto(acc, xw)
+            for j, (_, y, a, d) in enumerate(terms):
+                yw = _to(y, d, wide, scratch, "y")
+                term = np.multiply(yw, wide(a), out=scratch("term", x.size, wide))
                 np.add(acc if j else xw, term, out=acc)
-            inputs = [("base", x)] + [(f"vector {i}", y) for i, y, _ in terms]
-            yield _cast_back(acc, dtype, n, inputs, scratch)
+            inputs = [("base", x, dtype)] + [(f"vector {i}", y, d) for i, y, _, d in terms]
+            yield _cast_back(acc, to, n, inputs, scratch)
+
+    content: list[str] = []  # base's content hash, read only when a file hash does not match
+
+    def base_content() -> str:
+        if not content:
+            content.append(b.content_sha256())
+        return content[0]
 
     def check(digests: dict[str, str]) -> None:
         for i, (v, _) in enumerate(vecs):
             want = v.metadata.get("capvector.base_sha256")
-            if want and want != digests["base"] and not force:
-                raise VectorOpError(
-                    f"vector {i} ({v.path}) was extracted for base {want[:12]}…, not {b.path} "
-                    f"({digests['base'][:12]}…); pass force=True to merge anyway"
-                )
+            want_content = v.metadata.get("capvector.base_content_sha256")
+            if not (want or want_content) or want == digests["base"] or force:
+                continue
+            if base_content() in (want, want_content):
+                continue
+            named = (want_content or want)[:12]
+            raise VectorOpError(
+                f"vector {i} ({v.path}) was extracted for base {named}…, not {b.path} "
+                f"(tensors {base_content()[:12]}…, files {digests['base'][:12]}…); "
+                "pass --force to merge anyway"
+            )
 
     carried = {k: v for k, v in b.metadata.items() if not k.startswith("capvector.") or k in CARRIED_KEYS}
     meta = {
@@ -643,8 +838,15 @@ def merge(
         "capvector.exclude": json.dumps(list(exclude or [])),
     }
     readers = {"base": rb, **{f"vector_{i}": r for i, r in enumerate(rvs)}}
+    if card is not None:
+        alphas = {f"vector_{i}": a for i, (_, a) in enumerate(vecs)}
+        card = card.model_copy(update={"alphas": {**alphas, **card.alphas}})
+    carry = Path(carry_from) if carry_from is not None else b.path
     try:
-        return _run(out, names, b, readers, meta, compute, max_shard_bytes, overwrite, check, hashes)
+        return _run(
+            out, names, b, readers, meta, compute, max_shard_bytes, overwrite, check, hashes, dtypes=dtypes,
+            carry_from=carry, card=card, input_ids=input_ids,
+        )  # fmt: skip
     finally:
         for r in readers.values():
             r.close()
@@ -720,8 +922,10 @@ def mean(
         _key_diff(ref, v, role)
         _compare(ref, v, role, ref.keys())
     bases: dict[str, list[int]] = {}
+    by_content = all("capvector.base_content_sha256" in v.metadata for v in vecs)  # else by files
+    key = "capvector.base_content_sha256" if by_content else "capvector.base_sha256"
     for i, v in enumerate(vecs):
-        if want := v.metadata.get("capvector.base_sha256"):
+        if want := v.metadata.get(key):
             bases.setdefault(want, []).append(i)
     if len(bases) > 1:
         named = "; ".join(f"{b[:12]}… (vector {', '.join(map(str, ix))})" for b, ix in bases.items())
@@ -742,7 +946,9 @@ def mean(
         if len(values) == 1 and None not in values:
             meta[key] = values.pop()
     if bases:
-        meta["capvector.base_sha256"] = next(iter(bases))
+        meta[key] = next(iter(bases))
+        if by_content and (files := vecs[0].metadata.get("capvector.base_sha256")):
+            meta["capvector.base_sha256"] = files
     pool = ThreadPoolExecutor(1)
     copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
     readers = [_HashingReader(v, pool, copies) for v in vecs]
@@ -764,9 +970,11 @@ def mean(
                 yield xs[0]
                 continue
             # Never modify an input piece in place: its bytes may still be being hashed in the helper thread.
-            inputs = [(f"vector {i} ({v.path})", x) for i, (v, x) in enumerate(zip(vecs, xs, strict=True))]
+            inputs = [
+                (f"vector {i} ({v.path})", x, dtype) for i, (v, x) in enumerate(zip(vecs, xs, strict=True))
+            ]
             if ties:
-                for role, x in inputs:  # NaN would compare as neither sign and vanish from the result
+                for role, x, _ in inputs:  # NaN would compare as neither sign and vanish from the result
                     _finite_or_raise(x, dtype, n, role)
                 if limits is None:  # the whole tensor is this one piece
                     limits_here = [_kth_largest(_magnitude(x, dtype), keep) for x in xs]
@@ -907,10 +1115,10 @@ def null_vector(
         squares, size = 0.0, 0
         for x in reader.chunks(n, bounds):
             wide = _widen(x, dtype).astype(np.float64)
-            squares += float(np.dot(wide, wide))
+            squares += _dot(wide, wide)
             size += x.size
         noise = rng.standard_normal(size)
-        length = float(np.linalg.norm(noise))
+        length = math.sqrt(_dot(noise, noise))
         noise *= math.sqrt(squares) / length if length > 0 else 0.0
         yield _narrow(noise.astype(_wide(dtype)), dtype)
 
@@ -920,7 +1128,13 @@ def null_vector(
         "capvector.seed": str(seed),
         **{
             k: v.metadata[k]
-            for k in ("capvector.include", "capvector.exclude", "capvector.partial", "capvector.base_sha256")
+            for k in (
+                "capvector.include",
+                "capvector.exclude",
+                "capvector.partial",
+                "capvector.base_sha256",
+                "capvector.base_content_sha256",
+            )
             if k in v.metadata
         },
     }
@@ -944,6 +1158,15 @@ class VectorStat(BaseModel):
     relative_norm: float | None = None  # ‖γ‖ / ‖θ_base‖
     cosine: float | None = None  # cos(γ, reference vector)
     sign_agreement: float | None = None  # share of elements, both non-zero, with equal signs
+
+
+def _dot(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> float:
+    """a · b in float64 with the same bits whatever the thread count and BLAS: the products summed by
+    numpy's pairwise summation, whose order follows the length alone. A BLAS dot splits its sum among
+    its threads (OpenBLAS above 10,000 elements), so the last digits of a norm, hence the id of the
+    `vector_stats` of γ, followed the thread count (one on a Dask worker, several in the step pool).
+    `out`: a float64 buffer of a's size for the products."""
+    return float(np.add.reduce(np.multiply(a, b, out=out)))
 
 
 def group_of(name: str, depth: int) -> str:
@@ -997,7 +1220,7 @@ def _tensor_sums(
 ) -> dict[str, float]:
     """One tensor's sums for `stats`, streamed in pieces of about `CHUNK_BYTES` (per input, whatever its
     dtype): memory does not grow with the tensor. Each piece is widened to float64 and its sums (in
-    float64) are added up in Python floats."""
+    float64, `_dot`: no BLAS, the same bits on any number of threads) are added up in Python floats."""
     ckpts = {"vector": vector, **others}
     item = max(c.specs[name].itemsize for c in ckpts.values())
     step = max(1, CHUNK_BYTES // item)
@@ -1009,14 +1232,18 @@ def _tensor_sums(
         g = _float64_chunk(vector, name, i, j, buffers, "vector")
         if not _all_finite(g):
             raise VectorOpError(f"NaN or Inf in tensor {name!r} of vector")
-        s["sq"] += float(g @ g)
+        products = buffers.get("products")
+        if products is None or products.size < g.size:
+            products = buffers["products"] = np.empty(max(g.size, step), np.float64)
+        products = products[: g.size]
+        s["sq"] += _dot(g, g, products)
         if "base" in others:
             w = _float64_chunk(others["base"], name, i, j, buffers, "base")
-            s["bsq"] += float(w @ w)
+            s["bsq"] += _dot(w, w, products)
         if "reference_vector" in others:
             r = _float64_chunk(others["reference_vector"], name, i, j, buffers, "reference_vector")
-            s["rsq"] += float(r @ r)
-            s["dot"] += float(g @ r)
+            s["rsq"] += _dot(r, r, products)
+            s["dot"] += _dot(g, r, products)
             sg, sr = np.sign(g), np.sign(r)
             both = (sg != 0) & (sr != 0)
             s["both"] += float(np.count_nonzero(both))

@@ -318,14 +318,18 @@ def _conservative_variance(
     mean squares subtracted are goal-level ones with (g − 1)(k − t) df or more, and a goal part that
     comes out below 0 counts as 0 (which only widens V̂). The exact V also subtracts AB, with
     (g − 1)(s − 1) df: clipping what that subtraction leaves is what narrowed the old interval. With
-    one draw its variance cannot be seen and V̂ is conditional on that draw. df 0 when a mean square it
-    needs has none (one seed against a shared arm); df at most 1 when one has 1 df.
+    one draw its variance cannot be seen and V̂ is conditional on that draw; with one run of a shared arm
+    against several draws (θ_pt on D_ext validation) it is conditional on that run. df 0 when a mean
+    square it needs has none (one seed and one draw); df at most 1 when one has 1 df.
     A run-level mean square is never taken below its goal-level floor (`_FLOORS`).
     """
     df = _ms_df(g, s, k, t, crossed)
     df |= {alias: df[target] for alias, target in _aliases(g, crossed).items()}
     run_level = 1 / (g * s)
-    if crossed:
+    if crossed and s == 1 and g > 1:  # one run of the shared arm (θ_pt): conditional on it, draws vary
+        terms = [("A", run_level)]
+        goal_level = ("C", "AC")
+    elif crossed:
         terms = [("B", run_level)] + ([("A", run_level)] if g > 1 else [])
         goal_level = ("C", "AC", "BC") if g > 1 else ("C", "BC")
     else:
@@ -349,7 +353,7 @@ def _conservative_variance(
     # exactly when a run-level mean square comes out small by chance, and the interval then narrows and
     # misses (the old interval's failure at 2 seeds). So a run level with 1 df caps the df at 1, and
     # otherwise it stays within `_RUN_DF_CAP` × the run levels' df, however many goals there are.
-    run_df = [df[m] for m, _ in terms[: 2 if crossed and g > 1 else 1]]
+    run_df = [df[m] for m, _ in terms if m in ("A", "B", "AB")]
     cap = _RUN_DF_CAP * sum(run_df) if min(run_df) >= 2 else min(run_df)
     return variance, min(satterthwaite, cap)
 
@@ -682,8 +686,8 @@ class _Analysis:
         g, s = run.shape
         if g > 1:
             parts = [(run.mean(1).var(ddof=1) / g, g - 1)]
-            if self.crossed:
-                parts.append((run.mean(0).var(ddof=1) / s if s > 1 else 0.0, s - 1))
+            if self.crossed and s > 1:  # one shared run (s = 1): conditional on it
+                parts.append((run.mean(0).var(ddof=1) / s, s - 1))
         else:
             parts = [(run[0].var(ddof=1) / s if s > 1 else 0.0, s - 1)]
         variance = sum(x for x, _ in parts)

@@ -10,6 +10,7 @@ import contextlib
 import os
 import signal
 import sys
+import warnings
 from typing import Annotated
 
 import typer
@@ -82,12 +83,20 @@ def main_options(
         start_run_server()  # the address only: a run the content cache answers never starts the server
 
 
+def one_line_warning(message: Warning | str, category: type[Warning], *_: object, **__: object) -> str:
+    """A warning as the CLI's other warnings read: `warning: <message>`, one line (Python's own format
+    adds the file and line it came from and, on a line of its own, that line's source)."""
+    text = " ".join(str(message).split())
+    return f"warning: {text}\n" if category is UserWarning else f"warning: {category.__name__}: {text}\n"
+
+
 def main() -> None:
     """Console entry point: an error prints one line naming the problem and exits 2 (bad input) or 1
     (anything else), nothing half-written; `--debug` (or CAPVECTOR_DEBUG=1) shows the traceback. A
     failed flow names the step that failed first and that step's error, whichever error the flow
     raised. Ctrl-C: `interrupted`, exit 130 (see flows.process_tree.stop_on_signals)."""
     terminated = stop_on_signals()
+    warnings.formatwarning = one_line_warning
     if QUIET_RESOURCE_TRACKER not in sys.warnoptions:
         sys.warnoptions.append(QUIET_RESOURCE_TRACKER)
     try:

@@ -12,18 +12,28 @@ import typer
 
 from flows.home import resolve_home
 
+UNWRAPPED_WIDTH = 10_000
+"""A console's width when it does not write to a terminal: wide enough that no table cell, path or id
+is wrapped or cut (rich would wrap at 80 columns in a pipe, and a wrapped path cannot be pasted)."""
+
 
 class _LazyConsole:
-    """A rich Console made on first use: `sql` and `--help` never need rich's import (~30 ms)."""
+    """A rich Console made on first use: `sql` and `--help` never need rich's import (~30 ms). Written
+    to a pipe or file, it wraps nothing: lines are as long as their content (`UNWRAPPED_WIDTH`)."""
 
     def __init__(self, **options: Any):
         self._options, self._console = options, None
 
     def __getattr__(self, name: str) -> Any:
         if self._console is None:
+            import sys
+
             from rich.console import Console
 
-            self._console = Console(**self._options)
+            stream = sys.stderr if self._options.get("stderr") else sys.stdout
+            tty = getattr(stream, "isatty", lambda: False)()
+            unwrapped = {} if tty else {"soft_wrap": True, "width": UNWRAPPED_WIDTH}
+            self._console = Console(**{**unwrapped, **self._options})
         return getattr(self._console, name)
 
 

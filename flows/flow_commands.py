@@ -8,6 +8,7 @@ runs on the runner its options name (flows.runners). Heavy imports happen inside
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
@@ -64,6 +65,16 @@ def preflight(command: str, home: str | None) -> None:
     quiet_failed_run_logs()  # main() prints a failing run's error, in one line
 
 
+def log_slug(command: str) -> str:
+    """A log file's name for `command`: a preset given as a path by its file's stem (`--preset
+    /abs/p.yaml` named a file under folders that do not exist), no character a file name should avoid."""
+    head, _, preset = command.partition(" --preset ")
+    if "/" in preset or preset.endswith((".yaml", ".yml")):
+        preset = Path(preset).stem
+    slug = "-".join([*head.split(), *([preset] if preset else [])])
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", slug).strip("._-")[:80] or "run"
+
+
 def _start_log(command: str, home: str | None) -> None:
     """Progress to a log file in the home as well as the terminal (step workers inherit the path)."""
     from tasks.progress import LOG_FILE_ENV, emit
@@ -74,7 +85,7 @@ def _start_log(command: str, home: str | None) -> None:
         logs = workspace(home).local_root / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-        slug = "-".join(command.replace("--preset", "").split())
+        slug = log_slug(command)
         os.environ[LOG_FILE_ENV] = str(logs / f"{slug}-{stamp}-{os.getpid()}.log")
         from flows.housekeeping import prune_on_start
 
@@ -83,40 +94,77 @@ def _start_log(command: str, home: str | None) -> None:
 
 
 def _from_cache(
-    command: str, home: str, plan, total: int, label: str, dry_run: bool = False, planned: Sequence[str] = ()
+    command: str,
+    home: str,
+    plan,
+    total: int,
+    label: str,
+    dry_run: bool = False,
+    planned: Sequence[str] = (),
+    gate_at: int | None = None,
 ):
     """Know before starting: the plan's result when the content cache answers every step (no Prefect
     run, server wait or worker), else None. `dry_run` prints the plan's cache status and exits: each
-    step cached, the first one to run, and (given the recorded plan, `planned`) every step after it."""
+    step cached, the first one to run, and (given the recorded plan, `planned`) every step after it.
+    `gate_at`: how many of the planned steps come up to and including a gate (the rest run only if it
+    passes; they are listed and counted as such). The probe follows the plan's order, so the steps it
+    answered are the plan's first ones."""
     from flows.steps import CacheProbe, NotAllCached
 
     if _new_home(home, dry_run):
         return None  # a new home caches nothing (and an unreachable server must leave none behind)
-    probe = CacheProbe(home, total, label)
+    gate_at = total if gate_at is None else gate_at
+    probe = CacheProbe(home, gate_at, label)
     try:
         result, missing = plan(probe), None
     except NotAllCached as exc:
         result, missing = None, str(exc)
     if dry_run:
-        for step, artifact_id in probe.answered:
-            typer.echo(f"cached  {artifact_id[:12]}  {step}")
-        if missing is None:
-            typer.echo(f"all {total} steps cached: `capvector {command}` prints its result at once")
-        else:
-            answered = {step for step, _ in probe.answered}
-            after = [step for step in planned if step not in answered and step != missing]
-            typer.echo(f"to run  {missing}")
-            for step in after:
-                typer.echo(f"then    {step}")
-            todo = total - len(probe.answered)
-            typer.echo(
-                f"{todo} of {total} steps to run or to look up once their inputs exist (the first: {missing})"
-            )
+        _print_dry_run(command, probe.answered, missing, list(planned), total, gate_at)
         raise typer.Exit(0)
     if missing is None:
         _start_log(command, home)
         probe.replay()
     return result
+
+
+def _print_dry_run(
+    command: str,
+    answered: list[tuple[str, str]],
+    missing: str | None,
+    planned: list[str],
+    total: int,
+    gate_at: int,
+) -> None:
+    """What `--dry-run` prints: the cached steps, then the ones to run, the gated ones marked `gated`,
+    and counts of what will run (before the gate, and after it if it passes)."""
+    done = len(answered)
+    for step, artifact_id in answered:
+        typer.echo(f"cached  {artifact_id[:12]}  {step}")
+    after = total - gate_at
+    if missing is None:
+        if done < total and after:
+            typer.echo(
+                f"all {done} steps up to the gate cached; the gate did not pass, so the {total - done} "
+                f"after it do not run: `capvector {command}` prints its result at once"
+            )
+        else:
+            typer.echo(f"all {done} steps cached: `capvector {command}` prints its result at once")
+        return
+    typer.echo(f"to run  {missing}")
+    for i, step in enumerate(planned[done + 1 :], start=done + 1):
+        typer.echo(f"{'gated ' if i >= gate_at else 'then  '}  {step}")
+    if not after or done >= gate_at:  # no gate, or it passed already: every step left runs
+        suffix = " (the gate passed)" if after else ""
+        typer.echo(
+            f"{total - done} of {total} steps to run or to look up once their inputs exist{suffix} "
+            f"(the first: {missing})"
+        )
+        return
+    typer.echo(
+        f"{gate_at - done} of {gate_at} steps to run or to look up once their inputs exist before the gate, "
+        f"{after} after it if the gate passes (the first: {missing})"
+    )
 
 
 def _answer_or_run(
@@ -130,11 +178,12 @@ def _answer_or_run(
     config,
     runner_config,
     planned: Sequence[str] = (),
+    gate_at: int | None = None,
 ) -> Any:
     """A planned command's result: from the content cache when it answers every step (no server, no
     flow run, no Prefect import), else from a flow run (server up, log opened, tagged with the command
     and preset). `flow`: the flow as `module:name`, imported only when it has to run."""
-    result = _from_cache(command, resolve_home(home), plan, total, label, dry_run, planned)
+    result = _from_cache(command, resolve_home(home), plan, total, label, dry_run, planned, gate_at)
     if result is None:
         from importlib import import_module
 
@@ -201,7 +250,10 @@ def run(
 @runner_options("thread")
 @eval_options
 def evaluate(
-    checkpoints: Annotated[list[str], typer.Argument(help="checkpoint artifact ids (or unique prefixes)")],
+    checkpoints: Annotated[
+        list[str],
+        typer.Argument(help="checkpoint artifact ids (or unique prefixes), or policy files or folders"),
+    ],
     tasks: Annotated[str, typer.Option(help="comma-separated Meta-World task names")],
     home: HomeOption = None,
     as_json: JsonOption = False,
@@ -215,6 +267,9 @@ def evaluate(
 
     preflight("evaluate", home)
     config = EvalConfig(tasks=[t.strip() for t in tasks.split(",") if t.strip()], **eval_settings)
+    from tasks.trained_policy import resolve_checkpoints
+
+    checkpoints = resolve_checkpoints(workspace(home), checkpoints)  # paths imported; types checked
     flow_fn = _on_runner(evaluate_flow, runner_config)
     from flows.runs import run_tags
 
@@ -281,14 +336,15 @@ def study(
         _boot_server()
     from functools import partial
 
-    from flows.study import plan_study, study_plan
+    from flows.study import gated_study_plan, plan_study
     from flows.study_config import load_study
     from flows.study_figures import default_report_path, write_study_report
 
     config = load_study(preset, overrides)
     command, label = f"study --preset {preset}", f"study {config.name}"
     plan = partial(plan_study, config)
-    planned = [p.step for p in study_plan(config)]
+    steps, gate_at = gated_study_plan(config)
+    planned = [p.step for p in steps]
     result = _answer_or_run(
         command,
         home,
@@ -300,6 +356,7 @@ def study(
         config,
         runner_config,
         planned,
+        gate_at,
     )
     ws = workspace(home)
     written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))

@@ -9,7 +9,7 @@ from typing import Annotated, Any
 import typer
 
 from flows.cli_common import HomeOption, JsonOption, Table, console, err, print_json, text_table, workspace
-from flows.lineage_views import as_mermaid, as_tree, keep_kinds
+from flows.lineage_views import as_mermaid, as_tree, edge_notes, keep_kinds
 
 artifacts_app = typer.Typer(no_args_is_help=True, help="List and show artifacts.")
 
@@ -66,12 +66,13 @@ def lineage(
     if filtered:
         kept, hidden = ({k.strip() for k in v.split(",") if k.strip()} if v else None for v in (kinds, hide))
         rows = keep_kinds(rows, record, not descendants, kept, hidden, depth)
+    notes = {} if fmt == "json" else edge_notes(ws.api, [record.id, *(r.id for r in rows)])
     if fmt == "json":
         print_json([r.model_dump() for r in rows])
     elif fmt == "mermaid":
-        typer.echo(as_mermaid(rows, record, ancestors=not descendants))
+        typer.echo(as_mermaid(rows, record, ancestors=not descendants, notes=notes))
     elif fmt == "tree":
-        typer.echo(as_tree(rows, record))
+        typer.echo(as_tree(rows, record, notes))
     else:
         raise typer.BadParameter(f"unknown format {fmt!r}; use tree, json or mermaid")
 
@@ -113,6 +114,9 @@ def scores(
         print_json([{**r.model_dump(mode="json"), "protocol": names[r.fingerprint]} for r in rows])
         return
     table = Table("checkpoint", "name", "depth", "task", "success", "episodes", "protocol", "evaluated")
+    widest_task = max([4, *(len(r.task) for r in rows)])
+    for i, width in ((0, 12), (3, widest_task), (6, SHOWN)):  # ids and task names whole, even in a terminal
+        table.columns[i].no_wrap, table.columns[i].min_width = True, width
     for r in rows:
         table.add_row(
             r.checkpoint_id[:12],

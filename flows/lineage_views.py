@@ -16,6 +16,7 @@ import re
 import unicodedata
 from collections import deque
 from collections.abc import Collection, Sequence
+from typing import Any
 
 from artifacts.records import ArtifactRecord, LineageRow
 
@@ -70,11 +71,35 @@ def lineage_edges(rows: Sequence[LineageRow], root_id: str) -> list[tuple[str, s
     return out
 
 
-def as_tree(rows: list[LineageRow], root: ArtifactRecord) -> str:
-    """Each node in full under the node it was first reached from, every other edge as a reference."""
+EdgeNotes = dict[tuple[str, str, str], str]
+"""(parent, child, role) -> what an edge's label adds to its role (a merge's `α=0.5` on its vector edge)."""
+
+
+def edge_notes(api: Any, ids: Sequence[str]) -> EdgeNotes:
+    """The α of every `vector` edge into one of `ids` whose record carries one (merges record it)."""
+    if not ids:
+        return {}
+    _, found = api.query_rows(
+        "SELECT parent, child, role, TRY_CAST(attrs->>'alpha' AS DOUBLE) FROM edges "
+        "WHERE role = 'vector' AND child IN (SELECT UNNEST($ids)) AND attrs->>'alpha' IS NOT NULL",
+        {"ids": list(ids)},
+    )
+    return {(p, c, r): f"α={alpha:g}" for p, c, r, alpha in found if alpha is not None}
+
+
+def _edge_label(role: str, parent: str, child: str, notes: EdgeNotes) -> str:
+    note = notes.get((parent, child, role))
+    return f"{role} {note}" if note else role
+
+
+def as_tree(rows: list[LineageRow], root: ArtifactRecord, notes: EdgeNotes | None = None) -> str:
+    """Each node in full under the node it was first reached from, every other edge as a reference;
+    an edge's role with its note (`notes`, e.g. a merge's α) when it has one."""
     by_id = {r.id: r for r in rows}
     kids: dict[str, list[tuple[str, str]]] = {}
-    for near, far, role, _ in lineage_edges(rows, root.id):
+    for near, far, role, parent in lineage_edges(rows, root.id):
+        if notes and parent:
+            role = _edge_label(role, parent, near if parent == far else far, notes)
         kids.setdefault(near, []).append((far, role))
     for items in kids.values():
         items.sort(
@@ -224,9 +249,12 @@ def _kind_fill(kind: str | None) -> str:
     return FALLBACK_FILLS[digest[0] % len(FALLBACK_FILLS)]
 
 
-def as_mermaid(rows: list[LineageRow], root: ArtifactRecord, ancestors: bool) -> str:
+def as_mermaid(
+    rows: list[LineageRow], root: ArtifactRecord, ancestors: bool, notes: EdgeNotes | None = None
+) -> str:
     """`graph BT` for ancestors (arrows point from parent to child), `graph TD` for descendants; nodes
-    are coloured by kind (a `classDef` per kind, then the nodes of each)."""
+    are coloured by kind (a `classDef` per kind, then the nodes of each); an edge's label is its role
+    with its note (`notes`, e.g. a merge's α) when it has one."""
     lines = ["graph " + ("BT" if ancestors else "TD")]
     names = {r.id: _label(r.id, r.kind, r.name) for r in rows}
     names[root.id] = _label(root.id, root.kind, root.name)
@@ -238,7 +266,8 @@ def as_mermaid(rows: list[LineageRow], root: ArtifactRecord, ancestors: bool) ->
         if not parent:  # fallback hop: parent by direction
             parent = far if ancestors else near
         child = near if parent == far else far
-        lines.append(f"    {node(parent)} -->|{mermaid_text(role)}| {node(child)}")
+        label = _edge_label(role, parent, child, notes or {})
+        lines.append(f"    {node(parent)} -->|{mermaid_text(label)}| {node(child)}")
     if len(lines) == 1:
         lines.append(f"    {node(root.id)}")
     kinds = {r.id: r.kind for r in rows} | {root.id: root.kind}

@@ -7,6 +7,7 @@ import contextlib
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -44,10 +45,13 @@ def stop_on_signals() -> Callable[[], bool]:
     The server is out of the terminal's process group (flows.run_server), so Ctrl-C reaches only the
     CLI and its workers and the CLI says how the run ended: `interrupted`, exit 130 (143 on SIGTERM).
 
-    While a flow runs Prefect swaps in its own SIGTERM handler, which raises inside whatever is
-    running; a DuckDB call turns that into "Query interrupted" and the signal is lost. So the signal
-    is also recorded below Python's handlers (the wakeup pipe), and the returned `terminated()` tells
-    main(). Prefect leaves SIGINT alone."""
+    While a flow runs Prefect swaps in its own SIGTERM handler, which raises inside whatever is running:
+    a DuckDB call turned that into "Query interrupted" and the signal was lost, and the flow engine's
+    teardown of a large plan (cancelling and failing thousands of planned steps) kept the CLI and its
+    workers running for 30 s and more before the signal reached this handler. So every signal is also
+    recorded below Python's handlers (the wakeup pipe), and a thread of its own acts on SIGINT and
+    SIGTERM at once, whatever the main thread is doing or whoever's handler is installed. The returned
+    `terminated()` says whether SIGTERM came."""
 
     def stop(signum: int, _frame: Any) -> None:
         end(signum)
@@ -55,21 +59,37 @@ def stop_on_signals() -> Callable[[], bool]:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     read_end, write_end = os.pipe()
-    os.set_blocking(read_end, False)
     os.set_blocking(write_end, False)
     signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
+    seen = threading.Event()
 
-    def terminated() -> bool:
-        try:
-            return int(signal.SIGTERM) in os.read(read_end, 1024)
-        except OSError:  # nothing recorded (BlockingIOError)
-            return False
+    def watch() -> None:
+        while True:
+            try:
+                received = os.read(read_end, 1024)
+            except InterruptedError:
+                continue
+            except OSError:
+                return
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                if int(signum) in received:
+                    if signum == signal.SIGTERM:
+                        seen.set()
+                    end(signum)
 
-    return terminated
+    threading.Thread(target=watch, name="capvector-signals", daemon=True).start()
+    return seen.is_set
+
+
+_ending = threading.Lock()
 
 
 def end(signum: int) -> None:
-    """Stop every helper, say `interrupted` on Ctrl-C (terminal and run log), exit 128 + signum."""
+    """Stop every helper, say `interrupted` on Ctrl-C (terminal and run log), exit 128 + signum. Once:
+    a second caller (the signal's Python handler and the watching thread) waits for the first's exit."""
+    if not _ending.acquire(blocking=False):
+        while True:
+            time.sleep(60)
     stop_descendants()
     if signum == signal.SIGINT:
         with contextlib.suppress(OSError):

@@ -32,13 +32,16 @@ def resolve(value: Any) -> Any:
 class StepRunner:
     """Submits a flow's steps and reports each one's end as `[label k/N] step: cached|done|failed`."""
 
-    def __init__(self, home: str, total: int, label: str):
+    def __init__(self, home: str, total: int, label: str, after_gate: int = 0):
+        """`total`: the steps it will submit; with a gate, those up to it (`after_gate` more follow
+        only if it passes, and are added to the total then: `flows.study.after_gate`)."""
         self.home = home
         self.total = total
         self.label = label
         self._finished = 0
         self._lock = threading.Lock()
-        emit(f"[{label}] {total} steps")
+        gated = f" before the gate, {after_gate} after it if the gate passes" if after_gate else ""
+        emit(f"[{label}] {total} steps{gated}")
 
     def submit(self, step_task: Any, step: str, inputs: dict[str, Any], config: dict[str, Any]) -> Any:
         """The step's artifact id (a content-cache hit, run here) or a future (run by a worker)."""
@@ -95,6 +98,7 @@ class CacheProbe(StepRunner):
 
     def replay(self) -> None:
         """The progress lines of a plan the cache answered whole, as a flow run would print them."""
+        self.total = len(self.answered)  # a gate that did not pass stops the study short of its plan
         emit(f"[{self.label}] {self.total} steps, every one cached: answered without a flow run")
         for step, _ in self.answered:
             self._report(step, "cached")

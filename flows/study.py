@@ -28,7 +28,7 @@ from typing import Any
 
 from flows.config import ARMS
 from flows.recipe import submit_arm
-from flows.steps import PlannedStep, PlanRecorder, StepRunner, record_plan, resolve
+from flows.steps import CacheProbe, PlannedStep, PlanRecorder, StepRunner, resolve
 from flows.study_config import GATE_ARMS, SHARED_ARMS, StudyConfig
 from flows.study_markdown import load_study_report, study_markdown
 from tasks.data import collect_demos_task
@@ -44,12 +44,13 @@ from tasks.study_inputs import (
     HeldOutLoss,
     InputKey,
     Pretrained,
+    ReplicateVector,
     Selection,
     StandardRun,
     TestEvaluation,
 )
 from tasks.training import snapshots_of, train_task
-from tasks.vectors import extract_task, merge_task, null_vector_task
+from tasks.vectors import extract_task, mean_vector_task, merge_task, null_vector_task
 from tasks.workspace import Workspace, workspace_for
 
 SHARED = -1
@@ -64,12 +65,33 @@ def study_plan(cfg: StudyConfig) -> list[PlannedStep]:
     """Every step the study submits when its gate passes, in order, from the flow's own code run
     against a recorder: nothing runs or is looked up, and each choice takes its first candidate
     (a choice changes a step's config, never how many steps follow)."""
-    return record_plan(lambda recorder: _run_study(_PlannedStudy(cfg, recorder)))
+    return gated_study_plan(cfg)[0]
 
 
-def study_steps(cfg: StudyConfig) -> int:
-    """How many steps a study submits when its gate passes (progress shows `k/N`): `len(plan)`."""
-    return len(study_plan(cfg))
+def gated_study_plan(cfg: StudyConfig) -> tuple[list[PlannedStep], int]:
+    """The study's plan and where its gate falls: the number of steps submitted up to and including
+    the gate's analysis (every step when `study.gate` is off). The steps after it run only if the
+    gate passes."""
+    recorder = PlanRecorder()
+    study = _PlannedStudy(cfg, recorder)
+    _run_study(study)
+    return recorder.plan, study.gate_at if study.gate_at is not None else len(recorder.plan)
+
+
+def study_steps(cfg: StudyConfig) -> tuple[int, int]:
+    """How many steps a study submits before its gate (all of them when it has none), and how many
+    more after it if the gate passes: progress counts `k/N` to the first, then adds the second once
+    the gate has passed."""
+    plan, gate_at = gated_study_plan(cfg)
+    return gate_at, len(plan) - gate_at
+
+
+def after_gate(steps: Any, more: int) -> None:
+    """The gate passed: the runner's announced total grows by the steps that now follow it."""
+    if more and hasattr(steps, "total"):
+        steps.total += more
+        if not isinstance(steps, CacheProbe):  # a probe only looks: it says nothing until it replays
+            emit(f"[{steps.label}] gate passed: {more} more steps, {steps.total} in all")
 
 
 def _start_kind(arm: str) -> str:
@@ -88,6 +110,10 @@ class _Study:
         self.validation_ext = cfg.extraction_validation()
         self._started: dict[tuple[str, int], Any] = {}
         self.heldout_downstream: Any = None  # held-out D_down demos (the secondary endpoint)
+        self.unit = "replicate" if cfg.study.draws_per_replicate > 1 else "draw"
+        """What CapVector's arms are compared over: γ draws, or replicates (means of K draws)."""
+        self.gate_more = 0
+        """The steps that follow a passed gate (the runner's total grows by them then)."""
 
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
@@ -114,8 +140,8 @@ class _Study:
     def train_draw_arm(
         self, stage: dict[str, Any], arm: str, d: int, seed: int, step: Any, selection: Any = None
     ) -> Any:
-        """A compared run of an arm that depends on draw d (its name carries the draw: unique)."""
-        label = f"downstream {arm} draw {d} seed {seed}"
+        """A compared run of an arm that depends on draw (or replicate) d (its name carries it: unique)."""
+        label = f"downstream {arm} {self.unit} {d} seed {seed}"
         return submit_arm(self.steps, stage, arm, seed, step, label=label, selection=selection)
 
     def validate_curve(self, run: Any, what: str) -> list[Any]:
@@ -167,7 +193,7 @@ class _Study:
         """Every compared run at every budget, on the same test goals; its final checkpoint's held-out
         action loss on D_down (the continuous secondary endpoint)."""
         for (arm, d, seed), run in runs.items():
-            what = f"{arm}" + ("" if d == SHARED else f" draw {d}") + f" seed {seed}"
+            what = f"{arm}" + ("" if d == SHARED else f" {self.unit} {d}") + f" seed {seed}"
             for b, checkpoint in self.snapshots(run).items():
                 test = self.submit(evaluate_task, f"test {what} @ {b}", {"checkpoint": checkpoint}, self.test)
                 self.record(TestEvaluation(arm=arm, draw=d, seed=seed, budget=b), test)
@@ -186,6 +212,8 @@ class _PlannedStudy(_Study):
 
     def __init__(self, cfg: StudyConfig, recorder: PlanRecorder):
         super().__init__(cfg, recorder, None)
+        self.gate_at: int | None = None
+        """How many steps were submitted when the gate was asked (its analysis included)."""
 
     def snapshots(self, run: PlannedStep) -> dict[int, PlannedStep]:
         train = run.config["train"]
@@ -195,6 +223,7 @@ class _PlannedStudy(_Study):
         return selection.config["candidates"][0]["values"]
 
     def gate_passed(self, report: PlannedStep) -> bool:
+        self.gate_at = len(self.steps.plan)
         return True
 
 
@@ -255,7 +284,7 @@ def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[st
 
 
 def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, Any]) -> dict[str, Any]:
-    """θ_ft^d and θ_ao^d with the chosen values, γ^d, its null vector, their D_ext validations."""
+    """θ_ft^d and θ_ao^d with the chosen values, γ^d, their D_ext validations."""
     cfg, submit = study.cfg, study.submit
     inputs = {
         "data": stage["data"]["extraction"],
@@ -274,7 +303,6 @@ def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, An
         {"minuend": ao, "subtrahend": ft, "base": stage["pretrained"]},
         cfg.vector,
     )
-    null = submit(null_vector_task, f"draw {d} null vector", {"vector": vector}, {"seed": d})
     for which, run in (("ft", ft), ("ao", ao)):
         validation = submit(
             evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, study.validation_ext
@@ -282,7 +310,29 @@ def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, An
         study.record(ExtractionValidation(which=which, draw=d), validation)
     study.record(CapabilityVector(draw=d), vector)
     study.record(StandardRun(draw=d), ft)
-    return {**stage, "standard": ft, "auxiliary": ao, "vector": vector, "null_vector": null}
+    return {**stage, "standard": ft, "auxiliary": ao, "vector": vector}
+
+
+def _units(study: _Study, draws: dict[int, dict[str, Any]]) -> dict[int, dict[str, Any]]:
+    """The units CapVector's arms are compared over, each with its vector and null vector: the draws, or
+    with `study.draws_per_replicate` K > 1 the replicates, each the mean γ̄^r of K consecutive draws
+    (its θ_ft and θ_ao, which SFT from θ_ao / θ_ft start from, are its first draw's)."""
+    k = study.cfg.study.draws_per_replicate
+    units = dict(draws)
+    if k > 1:
+        ids = sorted(draws)
+        units = {}
+        for r in range(len(ids) // k):
+            group = ids[r * k : (r + 1) * k]
+            inputs = {f"vector {i}": draws[d]["vector"] for i, d in enumerate(group)}
+            vector = study.submit(mean_vector_task, f"replicate {r} mean capability vector γ̄", inputs, {})
+            study.record(ReplicateVector(replicate=r), vector)
+            units[r] = {**draws[group[0]], "vector": vector}
+    for u, unit in units.items():
+        null_inputs = {"vector": unit["vector"]}
+        label = f"{study.unit} {u} null vector"
+        unit["null_vector"] = study.submit(null_vector_task, label, null_inputs, {"seed": u})
+    return units
 
 
 def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: Any) -> None:
@@ -351,6 +401,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
     # Choices for the extraction runs, then every draw's θ_ft, θ_ao, γ and null vector.
     extraction = _extraction(study, data, pretrained)
     draws = {d: _draw(study, d, base, extraction) for d in s.draws}
+    units = _units(study, draws)
 
     # The downstream auxiliary weight, on the same endpoint the study is judged at.
     chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
@@ -375,12 +426,11 @@ def _run_study(study: _Study) -> dict[str, Any]:
                 study.steps, base, "aux", seed, step, selection=aux_selection
             )
 
-    # The gate's arms: SFT from each draw's θ_ao and θ_ft.
-    for d, stage in draws.items():
+    # The gate's arms: SFT from each unit's θ_ao and θ_ft.
+    for d, stage in units.items():
         for arm in [a for a in ("sft_from_ao", "sft_from_ft") if a in arms]:
-            study.test_start(
-                stage["auxiliary" if arm == "sft_from_ao" else "standard"], arm, d, f"draw {d} {arm} start"
-            )
+            start = stage["auxiliary" if arm == "sft_from_ao" else "standard"]
+            study.test_start(start, arm, d, f"{study.unit} {d} {arm} start")
             for seed in cfg.seeds:
                 runs[arm, d, seed] = study.train_draw_arm(
                     stage, arm, d, seed, cfg.study_downstream(arm, seed)
@@ -393,6 +443,8 @@ def _run_study(study: _Study) -> dict[str, Any]:
         if not study.gate_passed(gate_report):
             emit(f"[study {cfg.name}] gate: preconditions (c), (c′) not shown; CapVector's arms are not run")
             return {"report": gate_report, "selections": _selections(study)}
+        if study.gate_more:
+            after_gate(study.steps, study.gate_more)
 
     # CapVector's α × λ on the tuning γ, then each draw's θ_meta and θ_null and the remaining arms.
     rest = [arm for arm in ("meta_sft", "capvector", "null_capvector") if arm in arms]
@@ -420,8 +472,10 @@ def _run_study(study: _Study) -> dict[str, Any]:
             )
             for t in tunes
         }
-        for scale in s.lambda_scales:
-            what = f"capvector α={alpha} λ={scale}"
+        lambdas = [("lambda_scale", x, f"λ={x}") for x in s.lambda_scales]
+        lambdas += [("lambda_absolute", x, f"λ_abs={x:g}") for x in s.lambdas]
+        for form, value, name in lambdas:
+            what = f"capvector α={alpha} {name}"
             evaluations = []
             for t in tunes:
                 run = submit_arm(
@@ -429,35 +483,36 @@ def _run_study(study: _Study) -> dict[str, Any]:
                     {**base, "vector": tuning_vectors[t]},
                     "capvector",
                     t,
-                    cfg.study_downstream("capvector", t, lambda_scale=scale),
+                    cfg.study_downstream("capvector", t, **{form: value}),
                     label=_seeded(f"tune {what}", t, tunes),
                     meta=metas[t],
                 )
                 evaluations += study.validate_curve(run, _seeded(what, t, tunes))
-            grid_cells.append(({"alpha": alpha, "lambda_scale": scale}, evaluations))
+            grid_cells.append(({"alpha": alpha, form: value}, evaluations))
     context = {"seeds": tunes, "endpoint": cfg.curve_budgets}
     grid_selection = study.select("α and λ", grid_cells, context)
     best = study.chosen(grid_selection)
-    chosen_values |= {"alpha": best["alpha"], "lambda_scale": best["lambda_scale"]}
+    lam = {k: best[k] for k in ("lambda_scale", "lambda_absolute") if k in best}
+    chosen_values |= {"alpha": best["alpha"], **lam}
     merge = cfg.merge_config(best["alpha"])
-    for d, stage in draws.items():
+    for d, stage in units.items():
         for which, vector in (("meta", "vector"), ("null_meta", "null_vector")):
             name = "θ_meta" if which == "meta" else "θ_null"
             merge_inputs = {"base": pretrained, "vector": stage[vector], "selection": grid_selection}
-            stage[which] = submit(merge_task, f"draw {d} merge {name}", merge_inputs, merge)
+            stage[which] = submit(merge_task, f"{study.unit} {d} merge {name}", merge_inputs, merge)
         meta_validation = submit(
             evaluate_task,
-            f"validate draw {d} θ_meta on D_ext",
+            f"validate {study.unit} {d} θ_meta on D_ext",
             {"checkpoint": stage["meta"]},
             study.validation_ext,
         )
         study.record(ExtractionValidation(which="meta", draw=d), meta_validation)
         for arm in rest:
             start = stage["null_meta" if arm == "null_capvector" else "meta"]
-            study.test_start(start, arm, d, f"draw {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}")
-            scale = None if arm == "meta_sft" else best["lambda_scale"]
+            what = f"{study.unit} {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}"
+            study.test_start(start, arm, d, what)
             for seed in cfg.seeds:
-                step = cfg.study_downstream(arm, seed, lambda_scale=scale)
+                step = cfg.study_downstream(arm, seed, **({} if arm == "meta_sft" else lam))
                 runs[arm, d, seed] = study.train_draw_arm(stage, arm, d, seed, step, grid_selection)
     study.test_runs({k: v for k, v in runs.items() if k[0] in rest})
     report = study.analyse("final", _design(cfg, chosen_values))
@@ -483,6 +538,7 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
         "non_inferiority_margin": s.non_inferiority_margin,
         "n_boot": s.n_boot,
         "gate": s.gate,
+        "draws_per_replicate": s.draws_per_replicate,
         "chosen": chosen_values,
         "grids": {
             "extraction_lr": list(s.extraction_lrs),
@@ -490,6 +546,7 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
             "aux_weight": list(s.aux_weights),
             "alpha": list(s.alphas),
             "lambda_scale": list(s.lambda_scales),
+            "lambda_absolute": list(s.lambdas),
         },
     }
 
@@ -498,5 +555,7 @@ def plan_study(cfg: StudyConfig, steps: StepRunner) -> dict[str, Any]:
     """Submit the study's steps to `steps` (a flow's runner, or a CacheProbe): the report's and the
     selections' ids, and the report in Markdown."""
     workspace = workspace_for(steps.home)
-    ids = _run_study(_Study(cfg, steps, workspace))
+    study = _Study(cfg, steps, workspace)
+    study.gate_more = study_steps(cfg)[1]
+    ids = _run_study(study)
     return {**ids, "markdown": study_markdown(workspace, load_study_report(workspace, ids["report"]))}

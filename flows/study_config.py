@@ -38,6 +38,11 @@ class StudySettings(BaseModel):
 
     Args:
         draws: extraction seeds; each draw trains its own θ_ft and θ_ao, hence its own γ.
+        draws_per_replicate: K; with K > 1 the draws form len(draws) / K replicates, each γ̄^r the mean of
+            K consecutive draws' γ, and CapVector's arms (θ_meta, the orthogonal loss, the null vector)
+            and SFT from θ_ao / θ_ft (the replicate's first draw's) run per replicate: the replicate is
+            the analysis's unit, its variance the draw-level one. γ of one draw is mostly seed noise;
+            the mean of K points at the signal with cos √(Kρ / (Kρ + 1 − ρ)).
         tuning_seeds: seeds of the runs values are chosen from (never a compared run's seed or draw);
             a cell's score is its mean validation success over them, so with 2 or more one lucky
             tuning run cannot pick a value.
@@ -53,6 +58,8 @@ class StudySettings(BaseModel):
         alphas: merge coefficients of the α × λ grid (default 0.5–2: the paper's best was 1.1).
         lambda_scales: λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (tasks.training: orthogonal.scale);
             0 (θ_meta without the loss) is in the default grid, so the loss has to earn its place.
+        lambdas: λ in the paper's absolute form (orthogonal.scale "absolute"; its best was 1e-4), grid
+            cells beside the relative ones: the α × λ grid is alphas × (lambda_scales + lambdas).
         aux_weights: the downstream auxiliary arm's grid: as many cells as α × λ, so both arms get the
             same tuning budget.
         budgets: downstream steps at which every run is kept and tested besides the final one. The
@@ -67,6 +74,7 @@ class StudySettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
+    draws_per_replicate: int = Field(1, ge=1)
     tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001], min_length=1)
     extraction_lrs: list[float] = Field(min_length=1)
     extraction_aux_weights: list[float] = Field(min_length=1)
@@ -74,7 +82,8 @@ class StudySettings(BaseModel):
     flat_tolerance: float = Field(0.05, gt=0, lt=1)
     non_inferiority_margin: float = Field(5.0, gt=0)
     alphas: list[float] = Field(default_factory=lambda: [0.5, 1.0, 1.5, 2.0], min_length=1)
-    lambda_scales: list[float] = Field(default_factory=lambda: [0.0, 0.1, 1.0], min_length=1)
+    lambda_scales: list[float] = Field(default_factory=lambda: [0.0, 0.1, 1.0])
+    lambdas: list[float] = Field(default_factory=lambda: [1.0e-4])
     aux_weights: list[float] = Field(min_length=1)
     budgets: list[int] = Field(min_length=1)
     arms: list[StudyArm] = Field(default_factory=lambda: list(ALL_ARMS))
@@ -83,13 +92,16 @@ class StudySettings(BaseModel):
 
     @model_validator(mode="after")
     def _design(self) -> StudySettings:
-        cells = len(self.alphas) * len(self.lambda_scales)
+        cells = len(self.alphas) * (len(self.lambda_scales) + len(self.lambdas))
+        if not self.lambda_scales and not self.lambdas:
+            raise ValueError("study.lambda_scales and study.lambdas are both empty: the grid needs a λ")
         if len(self.aux_weights) != cells:
             raise ValueError(
                 f"study.aux_weights has {len(self.aux_weights)} values, the α × λ grid {cells} cells: "
                 "the auxiliary arm is tuned on the same budget as CapVector"
             )
-        grids = ("draws", "tuning_seeds", "alphas", "lambda_scales", "aux_weights", "extraction_lrs")
+        grids = ("draws", "tuning_seeds", "alphas", "lambda_scales", "lambdas", "aux_weights")
+        grids += ("extraction_lrs",)
         grids += ("extraction_aux_weights",)
         for name in (*grids, "budgets"):
             values = getattr(self, name)
@@ -99,8 +111,17 @@ class StudySettings(BaseModel):
         bad = [name for name in positive if any(x <= 0 for x in getattr(self, name))]
         if bad:
             raise ValueError(f"study.{', study.'.join(bad)} must be positive")
-        if any(x < 0 for x in self.lambda_scales):  # 0 belongs in the grid: θ_meta fine-tuned without it
-            raise ValueError(f"study.lambda_scales must be ≥ 0, not {self.lambda_scales}")
+        for name in ("lambda_scales", "lambdas"):  # 0 belongs in the grid: θ_meta fine-tuned without it
+            if any(x < 0 for x in getattr(self, name)):
+                raise ValueError(f"study.{name} must be ≥ 0, not {getattr(self, name)}")
+        if len(self.draws) % self.draws_per_replicate:
+            raise ValueError(
+                f"study.draws ({len(self.draws)}) must split into replicates of study.draws_per_replicate "
+                f"({self.draws_per_replicate}) draws"
+            )
+        twice = sorted({arm for arm in self.arms if self.arms.count(arm) > 1})
+        if twice:
+            raise ValueError(f"study.arms lists {', '.join(twice)} more than once: each arm is run once")
         missing = {"sft", "capvector"} - set(self.arms)
         if missing:
             raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")
@@ -186,14 +207,24 @@ class StudyConfig(PipelineConfig):
         return step.model_copy(update={"train": train})
 
     def study_downstream(
-        self, arm: str, seed: int, lambda_scale: float | None = None, aux_weight: float | None = None
+        self,
+        arm: str,
+        seed: int,
+        lambda_scale: float | None = None,
+        aux_weight: float | None = None,
+        lambda_absolute: float | None = None,
     ) -> TrainStepConfig:
-        """A downstream run with the curve's snapshots; λ scaled to the action loss's gradient."""
-        step = self.downstream_step(arm, seed, lambda_scale, aux_weight)
+        """A downstream run with the curve's snapshots; λ scaled to the action loss's gradient
+        (`lambda_scale`), or absolute as the paper's (`lambda_absolute`)."""
+        if lambda_scale is not None and lambda_absolute is not None:
+            raise ValueError("a run takes λ in one form: lambda_scale or lambda_absolute")
+        weight = lambda_scale if lambda_absolute is None else lambda_absolute
+        step = self.downstream_step(arm, seed, weight, aux_weight)
         train = step.train.model_copy(update={"snapshot_steps": self.curve_budgets[:-1]})
         update = {"train": train}
         if step.orthogonal is not None:
-            update["orthogonal"] = step.orthogonal.model_copy(update={"scale": "action_gradient"})
+            scale = "absolute" if lambda_absolute is not None else "action_gradient"
+            update["orthogonal"] = step.orthogonal.model_copy(update={"scale": scale})
         return step.model_copy(update=update)
 
     def extraction_validation(self) -> EvalConfig:

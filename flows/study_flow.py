@@ -22,7 +22,8 @@ def study_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
     """Run (or resume from cache) a study; returns the report's id and the selections' ids."""
     cfg = StudyConfig.model_validate(config)
     workspace = workspace_for(home)
-    steps = StepRunner(home, study_steps(cfg), f"study {cfg.name}")
+    before_gate, after_gate = study_steps(cfg)
+    steps = StepRunner(home, before_gate, f"study {cfg.name}", after_gate=after_gate)
     with recorded_run(workspace, "study", {"config": config, "home": home}):
         result = plan_study(cfg, steps)
         publish_markdown(f"{cfg.name}-study", result["markdown"], f"capvector study {cfg.name}")

@@ -159,6 +159,12 @@ def _sizing(report: StudyReport, key: str, c: Comparison | None) -> list[str]:
     return lines
 
 
+def _replicates(draws: list[int], k: int) -> str:
+    if k == 1:
+        return ""
+    return f" in {len(draws) // k} replicates of {k} (CapVector's arms per replicate γ̄^r, the unit)"
+
+
 def _grids(workspace: Workspace, report: StudyReport) -> list[str]:
     """Every selection's whole grid: each cell's validation success and its standard error over the
     validation goals (a goal's success averaged over the cell's budgets), the chosen cell in bold."""
@@ -193,7 +199,8 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
     budgets = ", ".join(str(b) for b in d.endpoint_budgets)
     lines = [f"# Study `{d.name}`", ""]
     lines += [
-        f"Design: {len(d.draws)} γ draw(s) × {len(d.seeds)} training seed(s); {report.goals_per_task} test "
+        f"Design: {len(d.draws)} γ draw(s){_replicates(d.draws, d.draws_per_replicate)} × {len(d.seeds)} "
+        f"training seed(s); {report.goals_per_task} test "
         f"goals per task × {len(report.tasks)} tasks ({', '.join(report.tasks)}), the same goals for every "
         f"checkpoint. Primary endpoint (declared in the preset): **mean success over {budgets} downstream "
         f"steps** (the area under the success-vs-steps curve); secondary: after {final}. Differences in "
@@ -269,7 +276,13 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)",
         "",
         "; ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in d.chosen.items())
-        + (" (λ as a multiple of ‖∇ action loss‖/‖γ‖)." if "lambda_scale" in d.chosen else "."),
+        + (
+            " (λ as a multiple of ‖∇ action loss‖/‖γ‖)."
+            if "lambda_scale" in d.chosen
+            else " (λ absolute, the paper's form)."
+            if "lambda_absolute" in d.chosen
+            else "."
+        ),
         "",
     ]
     for name, sel in report.selections.items():

@@ -5,18 +5,23 @@ A run is a checkpoint the `train` step produced (its record's config holds the s
 parents with role `snapshot` (edge attribute `budget`) and are not runs of their own. Its columns come
 from the catalogue alone:
 
-- stage and arm from its name as the flows give it: `downstream <arm> seed <s>` (downstream), `tune
-  <arm> ...` (tuning), `<arm> α=...` (sweep), `... θ_pt` (pretrain), `... θ_ft` / `... θ_ao`
-  (extraction), anything else `other`;
-- draw: `draw <d>` in its name, else in the name of its `init` or `regularized_by` parent (a study's
-  `downstream capvector seed 0` starts from `draw 1 merge θ_meta`); none for runs shared by every draw;
+- study: the study whose flow run trained it (the `study` flow's config name), else every study whose
+  analysis has it in its lineage; status: the state of the flow run that recorded it; train_s: its
+  training's wall time from its summary (steps trained here / steps per second);
+- stage and arm from its name as the flows give it: `downstream <arm> [draw|replicate <d>] seed <s>`
+  (downstream), `tune <arm> ...` (tuning), `<arm> α=...` (sweep), `... θ_pt` (pretrain), `... θ_ft` /
+  `... θ_ao` (extraction), anything else `other`;
+- draw (replicate): `draw <d>` (`replicate <r>`) in its name, else in the name of its `init` or
+  `regularized_by` parent (a study's `downstream capvector seed 0` starts from `draw 1 merge θ_meta`);
+  none for runs shared by every draw;
 - seed, lr, steps, adapter, aux, aux_weight and λ from its step config and summary: `lambda_weight`
   (`orthogonal.weight`), `lambda_mode` (`none` or `action_gradient`) and `lambda_applied` (the weight
   the run used);
 - α: the `alpha` of the `vector` edge into its `init` (θ_meta = θ_pt + α·γ);
 - `success@<budget>`: the mean over tasks, and `<task>@<budget>` per task, of the latest evaluation of
   the checkpoint it had at that budget (a snapshot, or the final one at `steps`), under one evaluation
-  protocol (`--fingerprint`, as `capvector scores` takes it). A task's column never mixes protocols.
+  protocol (`--fingerprint`, as `capvector scores` takes it; by default the test protocol with the most
+  evaluations, the others named below the table). A task's column never mixes protocols.
 
 Success is a fraction in csv, json and parquet (as in the catalogue) and a percentage in the table.
 Nothing here imports pandas, torch, prefect or metaworld.
@@ -56,11 +61,27 @@ WITH trained AS (
         WHERE s.role = 'init'
     ) GROUP BY run_id
 ), start_draws AS (
-    SELECT run_id, min(TRY_CAST(NULLIF(regexp_extract(name, '\bdraw (\d+)\b', 1), '') AS INTEGER)) AS draw
+    SELECT run_id,
+        min(TRY_CAST(NULLIF(regexp_extract(name, '\bdraw (\d+)\b', 1), '') AS INTEGER)) AS draw,
+        min(TRY_CAST(NULLIF(regexp_extract(name, '\breplicate (\d+)\b', 1), '') AS INTEGER)) AS replicate
     FROM starts GROUP BY run_id
+), study_reach AS MATERIALIZED (
+    WITH RECURSIVE reach(study, node) AS (
+        SELECT regexp_extract(name, '^analyse study (.*?)( \(gate\))?$', 1), id FROM artifacts
+        WHERE kind = 'study'
+        UNION
+        SELECT r.study, e.parent FROM reach r JOIN edges e ON e.child = r.node
+    ) SELECT * FROM reach
+), run_studies AS (
+    SELECT t.id AS run_id, string_agg(DISTINCT r.study, ', ' ORDER BY r.study) AS study
+    FROM trained t JOIN study_reach r ON r.node = t.id GROUP BY t.id
+), flow_runs AS (
+    SELECT a.id AS run_id, f.state AS status,
+        CASE WHEN f.flow_name = 'study' THEN f.parameters->'config'->>'name' END AS study
+    FROM artifacts a JOIN runs f ON f.flow_run_id = a.flow_run_id SEMI JOIN trained t ON t.id = a.id
 ), staged AS (
     SELECT *, CASE
-        WHEN regexp_matches(name, '^downstream \S+ seed') THEN 'downstream'
+        WHEN regexp_matches(name, '^downstream \S+ ((draw|replicate) \d+ )?seed') THEN 'downstream'
         WHEN starts_with(name, 'tune ') THEN 'tuning'
         WHEN contains(name, 'θ_pt') THEN 'pretrain'
         WHEN regexp_matches(name, 'θ_(ft|ao)') THEN 'extraction'
@@ -71,7 +92,7 @@ WITH trained AS (
     SELECT
         t.id, t.name, t.stage,
         CASE t.stage
-            WHEN 'downstream' THEN regexp_extract(t.name, '^downstream (\S+) seed', 1)
+            WHEN 'downstream' THEN regexp_extract(t.name, '^downstream (\S+) ', 1)
             WHEN 'tuning' THEN regexp_extract(t.name, '^tune (\S+)', 1)
             WHEN 'sweep' THEN regexp_extract(t.name, '^(\S+) α=', 1)
             WHEN 'other' THEN NULL
@@ -79,6 +100,16 @@ WITH trained AS (
         coalesce(
             TRY_CAST(NULLIF(regexp_extract(t.name, '\bdraw (\d+)\b', 1), '') AS INTEGER), d.draw
         ) AS draw,
+        coalesce(
+            TRY_CAST(NULLIF(regexp_extract(t.name, '\breplicate (\d+)\b', 1), '') AS INTEGER), d.replicate
+        ) AS replicate,
+        coalesce(f.study, s.study) AS study,
+        f.status,
+        round(
+            (TRY_CAST(t.summary->>'steps' AS DOUBLE)
+                - coalesce(TRY_CAST(t.summary->>'resumed_from_step' AS DOUBLE), 0))
+            / NULLIF(TRY_CAST(t.summary->>'steps_per_s' AS DOUBLE), 0), 1
+        ) AS train_s,
         TRY_CAST(t.ts->'train'->>'seed' AS BIGINT) AS seed,
         a.alpha,
         TRY_CAST(t.ts->'orthogonal'->>'weight' AS DOUBLE) AS lambda_weight,
@@ -91,6 +122,7 @@ WITH trained AS (
         TRY_CAST(t.ts->'train'->'aux'->>'weight' AS DOUBLE) AS aux_weight,
         t.created_at
     FROM staged t LEFT JOIN alphas a ON a.run_id = t.id LEFT JOIN start_draws d ON d.run_id = t.id
+    LEFT JOIN flow_runs f ON f.run_id = t.id LEFT JOIN run_studies s ON s.run_id = t.id
 ), points AS (
     SELECT id AS run_id, steps AS budget, id AS checkpoint_id FROM runs
     UNION ALL
@@ -99,8 +131,8 @@ WITH trained AS (
     WHERE e.role = 'snapshot'
 )"""
 RUN_COLUMNS = (
-    "id, name, stage, arm, draw, seed, alpha, lambda_weight, lambda_mode, lambda_applied, lr, adapter, "
-    "steps, aux, aux_weight"
+    "id, name, study, stage, arm, draw, replicate, seed, alpha, lambda_weight, lambda_mode, lambda_applied, "
+    "lr, adapter, steps, aux, aux_weight, status, train_s"
 )
 SCORED_WITH = """, scores AS (
     SELECT p.run_id, p.budget, t.task, arg_max(t.success_rate, t.evaluated_at) AS success
@@ -137,7 +169,9 @@ def choose_protocols(api: Any, choice: str | None) -> list[Protocol]:
     `test` or `validation`: every protocol starting at that goal-seed base (a study has one per task
     set, e.g. validation on D_ext and on D_down); a fingerprint or a unique prefix of 6+ characters:
     that one (flows.protocols.resolve). Without a choice: `test` when anything was evaluated on the
-    test goals, else the one protocol there is; several others are an error listing them. Two chosen
+    test goals (the one with the most evaluations where several were: one protocol per table unless
+    asked, `others_note` names the rest), else the one protocol there is; several others are an error
+    listing them. Two chosen
     protocols that evaluated the same task are an error too: a column never mixes protocols."""
     choices = protocols(api, {fp for _, _, fp in _evaluated(api)})
     if not choices:
@@ -145,8 +179,9 @@ def choose_protocols(api: Any, choice: str | None) -> list[Protocol]:
             resolve(choice, choices, "the catalogue")  # raises: names what there is (nothing)
         return []
     key = None if choice is None else choice.strip().lower()
-    if key is None:
-        chosen = [p for p in choices if p.name == "test"] or (choices if len(choices) == 1 else [])
+    if key is None:  # one protocol per table unless asked: the test protocol most evaluations used
+        tests = sorted((p for p in choices if p.name == "test"), key=lambda p: -p.evaluations)
+        chosen = tests[:1] or (choices if len(choices) == 1 else [])
         if not chosen:
             raise ValueError(
                 f"the runs were evaluated under {len(choices)} protocols and none on the test goals: "
@@ -171,6 +206,19 @@ def choose_protocols(api: Any, choice: str | None) -> list[Protocol]:
             "--fingerprint and a fingerprint prefix"
         )
     return chosen
+
+
+def others_note(api: Any, chosen: list[Protocol]) -> list[str]:
+    """A line naming the test protocols the default table left out, when there are any."""
+    shown = {p.fingerprint for p in chosen}
+    left = [p for p in protocols(api, {fp for _, _, fp in _evaluated(api)}) if p.name == "test"]
+    left = [p for p in left if p.fingerprint not in shown]
+    if not left:
+        return []
+    return [
+        f"not shown: {listing(left)} (one protocol per table: --fingerprint test for every test protocol, "
+        "or a fingerprint prefix)"
+    ]
 
 
 def runs_select(
@@ -311,6 +359,7 @@ def runs(
         api, [p.fingerprint for p in chosen], _split(arm), stages, where, per_task=not means_only
     )
     notes = [f"protocol {p.describe()}" for p in chosen] or ["no evaluations: no success columns"]
+    notes += others_note(api, chosen) if fingerprint is None else []
     if fmt == "parquet":
         n = api.copy_to(sql, params, out, "parquet")
         _say(f"wrote {out}: {n} runs", False)

@@ -8,7 +8,43 @@ from typing import Annotated
 
 import typer
 
-from flows.cli_common import HomeOption, JsonOption, Table, console, print_json, workspace
+from flows.cli_common import HomeOption, JsonOption, Table, console, err, print_json, workspace
+
+DtypeOption = Annotated[
+    str | None,
+    typer.Option(
+        "--dtype",
+        help="compute in this dtype (float32 | float64); lets floats of different dtypes meet "
+        "(a bf16 fine-tune against an fp32 base)",
+    ),
+]
+OutDtypeOption = Annotated[
+    str | None,
+    typer.Option(
+        "--out-dtype", help="float dtype to write (float32 | bfloat16 | ...; default: the reference's)"
+    ),
+]
+StripOption = Annotated[
+    str | None,
+    typer.Option("--strip-prefix", help="take this prefix off the other inputs' tensor names (model.)"),
+]
+AddOption = Annotated[
+    str | None, typer.Option("--add-prefix", help="put this prefix before the other inputs' tensor names")
+]
+ShardOption = Annotated[
+    str | None,
+    typer.Option(
+        "--out-shard-size",
+        help="a folder output's largest shard (5GB, 500MiB; HF's index layout); default 2 GiB",
+    ),
+]
+
+
+def _real(dtype, out_dtype, strip_prefix, add_prefix, out_shard_size):
+    from tasks.vector_commands import RealCheckpoints
+
+    return RealCheckpoints(dtype, out_dtype, strip_prefix, add_prefix, out_shard_size)
+
 
 vector_app = typer.Typer(
     no_args_is_help=True, help="Capability-vector arithmetic on safetensors checkpoints."
@@ -23,12 +59,21 @@ def vector_extract(
     base: Annotated[str | None, typer.Option(help="θ_pt the vector is meant for")] = None,
     include: Annotated[list[str] | None, typer.Option(help="tensor-name globs to include")] = None,
     exclude: Annotated[list[str] | None, typer.Option(help="tensor-name globs to exclude")] = None,
+    dtype: DtypeOption = None,
+    out_dtype: OutDtypeOption = None,
+    strip_prefix: StripOption = None,
+    add_prefix: AddOption = None,
+    out_shard_size: ShardOption = None,
     home: HomeOption = None,
 ) -> None:
-    """γ = MINUEND − SUBTRAHEND, streamed tensor by tensor; registered in the catalogue."""
+    """γ = MINUEND − SUBTRAHEND, streamed tensor by tensor; registered in the catalogue.
+
+    A folder output gets the minuend folder's other files (config.json, ...) and a README.md card;
+    --strip-prefix / --add-prefix map SUBTRAHEND's names onto MINUEND's."""
     from tasks.vector_commands import extract_cli
 
-    record = extract_cli(workspace(home), minuend, subtrahend, out, base, include, exclude)
+    real = _real(dtype, out_dtype, strip_prefix, add_prefix, out_shard_size)
+    record = extract_cli(workspace(home), minuend, subtrahend, out, base, include, exclude, real)
     console.print(f"{out}  (artifact {record.id})")
 
 
@@ -41,15 +86,25 @@ def vector_merge(
     include: Annotated[list[str] | None, typer.Option(help="tensor-name globs to merge into")] = None,
     exclude: Annotated[list[str] | None, typer.Option(help="tensor-name globs to keep from base")] = None,
     force: Annotated[bool, typer.Option(help="merge even if a vector names another base")] = False,
+    dtype: DtypeOption = None,
+    out_dtype: OutDtypeOption = None,
+    strip_prefix: StripOption = None,
+    add_prefix: AddOption = None,
+    out_shard_size: ShardOption = None,
     home: HomeOption = None,
 ) -> None:
-    """BASE + Σ α_i·vector_i, streamed; registered in the catalogue with an edge per vector."""
+    """BASE + Σ α_i·vector_i, streamed; registered in the catalogue with an edge per vector.
+
+    A folder output gets BASE folder's other files (config.json, train_config.json, processors, ...)
+    and a README.md card, so it loads where BASE loads; --strip-prefix / --add-prefix map the vectors'
+    names onto BASE's."""
     from tasks.vector_commands import merge_cli
 
     if len(vectors) != len(alphas):
         raise typer.BadParameter(f"{len(vectors)} --vector but {len(alphas)} --alpha: give one α per vector")
+    real = _real(dtype, out_dtype, strip_prefix, add_prefix, out_shard_size)
     record = merge_cli(
-        workspace(home), base, list(zip(vectors, alphas, strict=True)), out, include, exclude, force
+        workspace(home), base, list(zip(vectors, alphas, strict=True)), out, include, exclude, force, real
     )
     console.print(f"{out}  (artifact {record.id})")
 
@@ -81,7 +136,7 @@ def vector_stats(
     """Norms, relative norms, cosine and sign agreement per tensor / module group."""
     from tasks.vector_commands import stats_cli
 
-    rows = stats_cli(workspace(home), vector, base, reference)
+    rows, record, reused = stats_cli(workspace(home), vector, base, reference)
     if as_json:
         print_json([r.model_dump() for r in rows])
         return
@@ -98,6 +153,8 @@ def vector_stats(
             _fmt(r.sign_agreement),
         )
     console.print(table)
+    said = "recorded before: reused" if reused else "recorded"
+    err.print(f"stats artifact {record.id} ({said})", highlight=False)
 
 
 def _fmt(x: float | None) -> str:

@@ -35,9 +35,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-import fsspec
-
-from artifacts.home import is_local
+from artifacts.home import filesystem, is_local
 
 SCRATCH_ENV = "CAPVECTOR_SCRATCH"
 MANIFEST = "checkpoint.json"
@@ -73,7 +71,7 @@ class CheckpointMirror:
     """The scratch folder of one training run (`<url>/<content key>/`)."""
 
     def __init__(self, url: str, key: str):
-        self.fs, base = fsspec.core.url_to_fs(url)
+        self.fs, base = filesystem(url)
         self.root = posixpath.join(base.rstrip("/"), key)
         self.where = posixpath.join(url.rstrip("/"), key)
 

@@ -103,9 +103,10 @@ def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: 
 
 
 def chosen(workspace: Workspace, selection_id: str) -> dict[str, Any]:
-    """The chosen candidate's values (as given in the config), e.g. {"alpha": 1.1, "lambda": 0.01}."""
+    """The chosen candidate's values (as given in the config), e.g. {"alpha": 1.1, "lambda": 0.01}; a
+    grid whose cells name different parameters (λ relative or absolute) gives the chosen cell's."""
     doc = workspace.api.store.open_json(selection_id)
-    return {k: doc["best"][k] for k in doc["parameters"]}
+    return {k: doc["best"][k] for k in doc["parameters"] if k in doc["best"]}
 
 
 @pipeline_task("select")

@@ -44,6 +44,7 @@ from tasks.study_inputs import (
     ExtractionValidation,
     HeldOutLoss,
     Pretrained,
+    ReplicateVector,
     Selection,
     StandardRun,
     TestEvaluation,
@@ -83,6 +84,8 @@ class StudyDesign(BaseModel):
     non_inferiority_margin: float
     n_boot: int
     gate: bool = True
+    draws_per_replicate: int = 1
+    """K > 1: CapVector's arms ran per replicate (the mean of K draws); their `draw` is the replicate."""
     stage: Literal["gate", "final"] = "final"
     chosen: dict[str, float]
     grids: dict[str, list[float]]
@@ -123,6 +126,28 @@ class LossComparison(BaseModel):
     baseline_mean: float
 
 
+class RunPoint(BaseModel):
+    """One compared run's mean success (points) over its test goals at one budget (budget 0: the
+    checkpoint it started from)."""
+
+    draw: int
+    seed: int
+    budget: int
+    success: float
+
+
+class TaskEndpoint(BaseModel):
+    """An arm's primary endpoint on one task: the mean over its runs of each run's mean over the task's
+    goals, a 95 % t interval over runs (clipped to 0-100; NaN from one run), and the n behind it. Runs,
+    not goals, are the unit: one run's goals are not independent draws of the arm's effect."""
+
+    mean: float
+    ci_low: float
+    ci_high: float
+    n_runs: int
+    n_goals: int
+
+
 class StudyReport(BaseModel):
     design: StudyDesign
     gate: str | None = None
@@ -138,6 +163,10 @@ class StudyReport(BaseModel):
     """The continuous secondary endpoint: held-out action loss of the compared runs' final checkpoints."""
     per_task: dict[str, dict[str, float]] = {}
     """Arm -> task -> mean success (points) at the primary endpoint, over draws, seeds and goals."""
+    per_task_intervals: dict[str, dict[str, TaskEndpoint]] = {}
+    """Arm -> task -> its endpoint with an interval over runs and n (the per-task figure's bars)."""
+    run_curves: dict[str, list[RunPoint]] = {}
+    """Arm -> each run's success at each budget (the points beside the curves' means)."""
     final_checkpoints: dict[str, list[str]]
     """Arm -> its runs' final checkpoints (where the rendered report reads time per step)."""
     designs_for_5_points: dict[str, Design | None]
@@ -208,7 +237,8 @@ def _preconditions(
         Precondition(
             key="a",
             claim="the extraction runs converge (lr chosen on D_ext validation; held-out action loss flat "
-            f"over the second half: moved < {100 * design.flat_tolerance:.0f} %)",
+            f"over the second half: moved < {100 * design.flat_tolerance:.0f} %); reported, not required: "
+            "longer extraction made γ noisier, (e) measures what CapVector needs",
             holds=len(flat) == len(convergence) if convergence else None,
             detail=f"lr {design.chosen['extraction_lr']:g} chosen on validation; held-out loss change over "
             f"the second half: {drops}",
@@ -220,7 +250,7 @@ def _preconditions(
         Precondition(
             key="b",
             claim="auxiliary SFT beats SFT on D_ext validation goals (θ_ao vs θ_ft; reported, not gating: "
-            "it sits at a ceiling where θ_ft solves D_ext)",
+            "on the calibrated testbeds θ_ft sits near D_ext's ceiling, where (b) cannot show a difference)",
             holds=_verdict(ext) if ext else None,
             detail=ext.summary() if ext else "not measured",
             comparison=ext,
@@ -316,6 +346,11 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
         "gamma_norm": float(np.mean(list(norms.values()))),
     }
     values["mean_vector_cos"] = _mean_vector_cos(len(draws), rho)
+    values |= {f"gamma_norm_draw_{d}": n for d, n in norms.items()}  # per draw, for the γ figure
+    values |= {
+        f"cos_draws_{a}_{b}": dots[a, b] / (norms[a] * norms[b]) if norms[a] * norms[b] else math.nan
+        for a, b in itertools.combinations(draws, 2)
+    }
     intervals = ""
     if len(draws) >= 3:
         jack = np.array([signal([d for d in draws if d != left]) for left in draws])
@@ -344,12 +379,29 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
                 cosines.append(_dot(flat[d], delta) / scale if scale else math.nan)
         values["cos_ft_reference"] = float(np.mean(cosines))
         reference = f"; cos(γ^d, θ_ft^d − θ_pt) {', '.join(f'{c:+.2f}' for c in cosines)}"
+    replicates = ""
+    means = {k.replicate: workspace.path(v) for k, v in inputs_of(inputs, ReplicateVector)}
+    if len(means) >= 2:
+        flat_means = {r: np.concatenate(list(_flat(Checkpoint(p), names).values())) for r, p in means.items()}
+        pairs = list(itertools.combinations(sorted(flat_means), 2))
+        cos = [
+            _dot(flat_means[a], flat_means[b])
+            / math.sqrt(_dot(flat_means[a], flat_means[a]) * _dot(flat_means[b], flat_means[b]))
+            for a, b in pairs
+        ]
+        k = len(draws) // len(means)
+        values["replicate_cos"] = float(np.mean(cos))
+        values["replicate_cos_predicted"] = _mean_vector_cos(k, rho) ** 2
+        replicates = (
+            f"; {len(means)} replicates of {k} draws: mean cos(γ̄^r, γ̄^r′) {values['replicate_cos']:.2f} "
+            f"(ρ̂ predicts {values['replicate_cos_predicted']:.2f})"
+        )
     holds = None if "rho_low" not in values else True if values["rho_low"] > 0 else None
     detail = (
         f"ρ̂ {rho:.2f}{intervals or ' (an interval needs 3 draws)'}; so the mean of these {len(draws)} draws "
         f"has cos {values['mean_vector_cos']:.2f} with the signal; ‖γ‖ "
         f"{', '.join(f'{n:.2f}' for n in norms.values())} against ‖θ_ft^d − θ_ft^d′‖ "
-        f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}{reference}"
+        f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}{reference}{replicates}"
     )
     return Precondition(
         key="e", claim=claim, holds=holds, detail=detail, detail_values=values, measured=len(draws) >= 3
@@ -373,6 +425,21 @@ def _flat(checkpoint: Checkpoint, names: list[str] | None = None) -> dict[str, n
     """Float tensors of a (small) checkpoint as flat float64 arrays, by name."""
     tensors = {n: checkpoint.get(n) for n in (names if names is not None else checkpoint.keys())}
     return {n: t.double().ravel().numpy() for n, t in tensors.items() if t.is_floating_point()}
+
+
+def _per_task_intervals(episodes: pd.DataFrame) -> dict[str, dict[str, TaskEndpoint]]:
+    """`TaskEndpoint`s of every arm and task at the primary endpoint."""
+    endpoint = episodes[episodes["budget"] == ENDPOINT]
+    out: dict[str, dict[str, TaskEndpoint]] = {}
+    for (arm, task), rows in endpoint.groupby(["arm", "task"]):
+        runs = 100 * rows.groupby(["draw", "seed"])["success"].mean().to_numpy()
+        n, mean = len(runs), float(runs.mean())
+        half = t_quantile(0.975, n - 1) * float(runs.std(ddof=1)) / math.sqrt(n) if n > 1 else math.nan
+        low, high = (math.nan, math.nan) if n < 2 else (max(0.0, mean - half), min(100.0, mean + half))
+        out.setdefault(str(arm), {})[str(task)] = TaskEndpoint(
+            mean=mean, ci_low=low, ci_high=high, n_runs=n, n_goals=int(rows["goal"].nunique())
+        )
+    return out
 
 
 def gate_passed(workspace: Workspace, report_id: str) -> bool:
@@ -437,6 +504,15 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
             arm: {task: 100 * float(v) for task, v in rows.groupby("task")["success"].mean().items()}
             for arm, rows in episodes[episodes["budget"] == ENDPOINT].groupby("arm")
         },
+        per_task_intervals=_per_task_intervals(episodes),
+        run_curves={
+            arm: [
+                RunPoint(draw=int(d), seed=int(s), budget=int(b), success=100 * float(v))
+                for (d, s, b), v in rows.groupby(["draw", "seed", "budget"])["success"].mean().items()
+            ]
+            for arm, rows in episodes[episodes["budget"] != ENDPOINT].groupby("arm")
+            if arm in curves
+        },
         final_checkpoints={arm: sorted(ids) for arm, ids in sorted(by_arm.items())},
         designs_for_5_points={
             f"{c.arm}-{c.baseline}": smallest_design(
@@ -490,7 +566,8 @@ def _gate_verdict(design: StudyDesign, preconditions: list[Precondition]) -> str
     if not failed:
         return None
     reasons = "; ".join(
-        f"({p.key}) {p.claim}: {'contradicted' if p.holds is False else 'not shown'} — {p.detail}"
+        f"({p.key.replace('_prime', '′')}) {p.claim}: {'contradicted' if p.holds is False else 'not shown'} "
+        f"— {p.detail}"
         for p in failed
     )
     return (

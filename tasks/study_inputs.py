@@ -82,6 +82,13 @@ class CapabilityVector(InputKey):
     draw: int
 
 
+class ReplicateVector(InputKey):
+    """γ̄^r, the mean of a replicate's draws (precondition e: do replicates agree?)."""
+
+    kind: ClassVar[str] = "replicate"
+    replicate: int
+
+
 class StandardRun(InputKey):
     """θ_ft^d, whose differences between draws are the seed-noise vector (precondition e)."""
 
@@ -110,6 +117,7 @@ KINDS = {
         HeldOutLoss,
         DownstreamLoss,
         CapabilityVector,
+        ReplicateVector,
         StandardRun,
         Pretrained,
         Selection,

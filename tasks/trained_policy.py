@@ -14,7 +14,7 @@ from pydantic import BaseModel
 
 from capvector_core import lora_sp
 from capvector_core.lora import read_adapter
-from capvector_core.policy import Policy, load_policy
+from capvector_core.policy import Policy, load_policy, read_policy_config
 from tasks.workspace import Workspace
 
 
@@ -54,3 +54,20 @@ def load_trained_policy(
     policy = load_policy(workspace.path(form.init_id), device=device)
     lora_sp.load_adapter(policy, workspace.path(form.adapter_id))
     return policy, form
+
+
+def resolve_checkpoints(workspace: Workspace, refs: list[str]) -> list[str]:
+    """Checkpoint ids for `capvector evaluate`'s arguments: an artifact id (or unique prefix) as it is, a
+    file or folder path imported into the store first. Each must name a registered policy type (in its
+    weights' metadata or, for a folder, its config.json); one that does not is refused in one line, with
+    how to register one, before any flow starts."""
+    from pathlib import Path
+
+    from tasks.vector_commands import import_path
+
+    ids = []
+    for ref in refs:
+        record = import_path(workspace, ref) if Path(ref).exists() else workspace.api.get(ref)
+        read_policy_config(workspace.path(record.id))
+        ids.append(record.id)
+    return ids

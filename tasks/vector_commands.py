@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import shlex
 import shutil
 import sys
 import threading
@@ -32,11 +33,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from artifacts.hashing import hash_file
+from artifacts.hashing import hash_file, manifest_id
 from artifacts.records import ArtifactRecord
 from artifacts.store import copy_file, copy_in, flush_soon, fsync_file
 from capvector_core import vector_ops
-from capvector_core.safetensors_io import Checkpoint, CheckpointError
+from capvector_core.safetensors_io import Checkpoint, CheckpointError, parse_size
 from capvector_core.vector_ops import VectorStat
 from tasks.workspace import Workspace, library_versions, provenance
 
@@ -230,7 +231,11 @@ def _placing(staged: Path, out: Path) -> Iterator[None]:
         return
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:12]}"
-    names = sorted(f.name for f in staged.iterdir()) if staged.is_dir() else [None]
+    names = (  # a folder's files, those in subfolders too (a base's processors, tokenizer, ...)
+        sorted(f.relative_to(staged).as_posix() for f in staged.rglob("*") if f.is_file())
+        if staged.is_dir()
+        else [None]
+    )
     failed: list[BaseException] = []
     with contextlib.ExitStack() as files:
         sources = [files.enter_context(open(staged / n if n else staged, "rb")) for n in names]
@@ -240,6 +245,8 @@ def _placing(staged: Path, out: Path) -> Iterator[None]:
                 if staged.is_dir():
                     tmp.mkdir()
                 for n, f in zip(names, sources, strict=True):
+                    if n:
+                        (tmp / n).parent.mkdir(parents=True, exist_ok=True)
                     copy_file(f, tmp / n if n else tmp)
                     fsync_file(tmp / n if n else tmp)
             except BaseException as e:  # raised again in the command's thread
@@ -315,6 +322,65 @@ def _produce(
         )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class RealCheckpoints:
+    """The options that fit real checkpoints to each other and shape the output (`--dtype`, ...)."""
+
+    dtype: str | None = None
+    out_dtype: str | None = None
+    strip_prefix: str | None = None
+    add_prefix: str | None = None
+    out_shard_size: str | None = None  # e.g. 5GB; None: 2 GiB shards, as before
+
+    def kwargs(self) -> dict[str, Any]:
+        found = {k: getattr(self, k) for k in ("dtype", "out_dtype", "strip_prefix", "add_prefix")}
+        if self.out_shard_size is not None:
+            found["max_shard_bytes"] = parse_size(self.out_shard_size)
+        return found
+
+    def flags(self) -> list[str]:
+        """The options as given, in the command's spelling (for the card)."""
+        return [
+            f"--{k.replace('_', '-')} {shlex.quote(str(v))}" for k, v in vars(self).items() if v is not None
+        ]
+
+    def config(self) -> dict[str, Any]:
+        return {k: v for k, v in vars(self).items() if v is not None}
+
+
+def _input_ids(roles: dict[str, Input | None], hashes: dict[Path, str]) -> Callable[[str], str | None]:
+    """role -> the artifact id its input has (stored) or will have once registered (a path: the id of
+    its copy, from the hashes taken while it was read)."""
+
+    def find(role: str) -> str | None:
+        item = roles.get(role)
+        if item is None:
+            return None
+        if item.record is not None:
+            return item.record.id
+        if item.copy.is_file():
+            return hashes.get(item.copy)
+        entries = [
+            (f.relative_to(item.copy).as_posix(), f.stat().st_size, hashes.get(f) or hash_file(str(f)))
+            for f in item.copy.rglob("*")
+            if f.is_file()
+        ]
+        return manifest_id(entries)
+
+    return find
+
+
+def _carry_from(item: Input) -> Path:
+    """Where a reference input's other files are read: its copy (what is registered) or its stored folder."""
+    return item.copy if item.copy is not None else item.path
+
+
+def _filters(include: list[str] | None, exclude: list[str] | None) -> list[str]:
+    return [f"--include {shlex.quote(p)}" for p in include or []] + [
+        f"--exclude {shlex.quote(p)}" for p in exclude or []
+    ]
+
+
 def extract_cli(
     workspace: Workspace,
     minuend: str,
@@ -323,19 +389,35 @@ def extract_cli(
     base: str | None,
     include: list[str] | None,
     exclude: list[str] | None,
+    real: RealCheckpoints | None = None,
 ) -> ArtifactRecord:
     out = Path(out)
+    real = real or RealCheckpoints()
+    options = real.kwargs()
     _refuse_existing(out)
     with workspace.api.store.staging() as stage:
         refs = [(minuend, "checkpoint"), (subtrahend, "checkpoint"), (base, "checkpoint")]
         m, s, b = _locate_all(workspace, refs, stage)
         inputs = [(m, "minuend", {}), (s, "subtrahend", {})] + ([(b, "base", {})] if b else [])
+        command = " ".join(
+            ["capvector vector extract {minuend} {subtrahend}"]
+            + (["--base {base}"] if b else [])
+            + _filters(include, exclude)
+            + real.flags()
+            + ["-o OUTPUT"]
+        )
+        settings = {"include": include, "exclude": exclude, **real.config()}
+        card = vector_ops.Card(command=command, settings=settings)
 
         def compute(dst: Path, hashes: dict[Path, str], copies: dict[Path, Path]) -> Path:
             flt, base_path = (include or None, exclude or None), b.path if b else None
-            return vector_ops.extract(m.path, s.path, dst, *flt, base=base_path, hashes=hashes, copies=copies)
+            return vector_ops.extract(
+                m.path, s.path, dst, *flt, base=base_path, hashes=hashes, copies=copies, **options,
+                carry_from=_carry_from(m), card=card,
+                input_ids=_input_ids({"minuend": m, "subtrahend": s, "base": b}, hashes),
+            )  # fmt: skip
 
-        config = {"formula": "minuend - subtrahend", "include": include, "exclude": exclude}
+        config = {"formula": "minuend - subtrahend", "include": include, "exclude": exclude, **real.config()}
         return _produce(workspace, stage, out, inputs, compute, "vector", config)
 
 
@@ -355,8 +437,11 @@ def merge_cli(
     include: list[str] | None,
     exclude: list[str] | None,
     force: bool,
+    real: RealCheckpoints | None = None,
 ) -> ArtifactRecord:
     out = Path(out)
+    real = real or RealCheckpoints()
+    options = real.kwargs()
     alphas = finite_alphas([a for _, a in vectors])
     _refuse_existing(out)
     with workspace.api.store.staging() as stage:
@@ -364,16 +449,31 @@ def merge_cli(
         b, *located = _locate_all(workspace, refs, stage)
         pairs = list(zip(located, alphas, strict=True))
         inputs = [(b, "base", {})] + [(v, "vector", {"alpha": a}) for v, a in pairs]
+        command = " ".join(
+            ["capvector vector merge {base}"]
+            + [f"--vector {{vector_{i}}} --alpha {a!r}" for i, a in enumerate(alphas)]
+            + _filters(include, exclude)
+            + real.flags()
+            + (["--force"] if force else [])
+            + ["-o OUTPUT"]
+        )
+        settings = {"include": include, "exclude": exclude, **real.config(), "force": force or None}
+        card = vector_ops.Card(command=command, settings=settings)
+        roles = {"base": b, **{f"vector_{i}": v for i, v in enumerate(located)}}
 
         def compute(dst: Path, hashes: dict[Path, str], copies: dict[Path, Path]) -> Path:
             vecs, flt = [(v.path, a) for v, a in pairs], (include or None, exclude or None)
-            return vector_ops.merge(b.path, vecs, dst, *flt, force=force, hashes=hashes, copies=copies)
+            return vector_ops.merge(
+                b.path, vecs, dst, *flt, force=force, hashes=hashes, copies=copies, **options,
+                carry_from=_carry_from(b), card=card, input_ids=_input_ids(roles, hashes),
+            )  # fmt: skip
 
         config = {
             "formula": "base + sum_i alpha_i * vector_i",
             "alphas": alphas,
             "include": include,
             "exclude": exclude,
+            **real.config(),
         }
         return _produce(workspace, stage, out, inputs, compute, "checkpoint", config)
 
@@ -412,9 +512,16 @@ def _refuse_repeated(refs: list[str], located: list[Input]) -> None:
             raise ValueError(f"{ref!r} {same} (inputs {j} and {i}): each vector counts once in a mean")
 
 
-def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: str | None) -> list[VectorStat]:
+def stats_cli(
+    workspace: Workspace, vector: str, base: str | None, reference: str | None
+) -> tuple[list[VectorStat], ArtifactRecord, bool]:
+    """The vector's statistics, their `vector_stats` artifact, and whether it was recorded before: the
+    same vector, base and reference give the same document, hence the same artifact (content
+    addressing), so a repeated call reuses it and registers nothing new."""
+    from artifacts.records import utcnow
     from tasks.vectors import stat_rows  # imports Prefect: only this command needs it
 
+    started = utcnow()
     with workspace.api.store.staging() as stage:
         refs = [(vector, "vector"), (base or None, "checkpoint"), (reference or None, "vector")]
         v, b, r = _locate_all(workspace, refs, stage, copy_now=True)  # stats does not hash what it reads
@@ -425,7 +532,7 @@ def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: st
         for item in items:
             _check_copy(item)
         ids = _commit(workspace, items, {}, verified)
-        workspace.api.register_vector_stats(
+        record = workspace.api.register_vector_stats(
             ids[id(v)],
             stat_rows(rows),
             base_id=ids[id(b)] if b else None,
@@ -433,4 +540,4 @@ def stats_cli(workspace: Workspace, vector: str, base: str | None, reference: st
             parent_hashes=verified,
             **_provenance(),
         )
-    return rows
+    return rows, record, record.created_at < started

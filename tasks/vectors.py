@@ -1,4 +1,5 @@
-"""Steps: extract a capability vector (with its statistics) and merge vectors into a base checkpoint."""
+"""Steps: extract a capability vector (with its statistics), average several (γ̄ of K draws), and merge
+vectors into a base checkpoint."""
 
 from __future__ import annotations
 
@@ -123,6 +124,31 @@ def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: d
     return cached_step(workspace, "merge", inputs, config, produce)
 
 
+def run_mean_vector(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    """γ̄ = the mean of the input vectors `vector 0`, `vector 1`, … (their seed noise averages out: with a
+    signal fraction ρ per draw, the mean of K points at the signal with cos √(Kρ / (Kρ + 1 − ρ)))."""
+    roles = sorted((r for r in inputs if r.startswith("vector ")), key=lambda r: int(r.split()[1]))
+    if len(roles) < 2 or len(roles) != len(inputs):
+        raise ValueError(
+            f"step {step!r}: a mean needs inputs 'vector 0', 'vector 1', … (2 or more), not {sorted(inputs)}"
+        )
+
+    def produce(key: str) -> str:
+        with workspace.scratch() as tmp:
+            out = vector_ops.mean([workspace.path(inputs[r]) for r in roles], tmp / "vector.safetensors")
+            record = workspace.api.register_file(
+                out,
+                kind="vector",
+                name=step,
+                config={"formula": "mean of vectors", "count": len(roles), "cache_key": key},
+                parents=[(inputs[r], "vector", {"index": i}) for i, r in enumerate(roles)],
+                **provenance(),
+            )
+        return record.id
+
+    return cached_step(workspace, "mean_vector", inputs, config, produce)
+
+
 class NullVectorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     seed: int = Field(0, description="seed of the random directions")
@@ -164,6 +190,11 @@ def extract_task(home: str, step: str, inputs: dict[str, str], config: dict[str,
 @pipeline_task("merge")
 def merge_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     return run_merge(workspace_for(home), step, inputs, config)
+
+
+@pipeline_task("mean_vector")
+def mean_vector_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_mean_vector(workspace_for(home), step, inputs, config)
 
 
 @pipeline_task("null_vector")

@@ -6,8 +6,9 @@ report in its output.
 Through the real console entry point (`run_cli`, a subprocess), as a user runs it.
 """
 
-
+import os
 import re
+from pathlib import Path
 
 import pytest
 from conftest import run_cli
@@ -119,3 +120,65 @@ def test_a_step_failing_in_a_worker_is_one_line_naming_the_step(tmp_path):
     line = _one_error_line(proc, "99")
     assert re.search(r"step '(auxiliary SFT θ_ao|downstream aux seed \d+)' failed", line), line
     assert "nanobind" not in proc.stderr, line
+
+
+# ---------------------------------------------------------------------------- issue 38's smaller faults
+PLUGIN_BODIES = {"exits": "import sys\nsys.exit(0)\n", "raises": "raise RuntimeError('no GPU here')\n"}
+
+
+@pytest.mark.parametrize("how", sorted(PLUGIN_BODIES))
+def test_a_policy_plugin_that_exits_or_raises_at_import_is_one_line_and_a_failure(tmp_path, how):
+    """A plugin calling sys.exit(0) at import made `capvector run` exit 0 with no output."""
+    plugins = tmp_path / "plugins"
+    info = plugins / "broken-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[capvector.policies]\nbroken = capvector_broken\n")
+    (plugins / "capvector_broken.py").write_text(PLUGIN_BODIES[how])
+    home = tmp_path / "home"
+    proc = run_cli("run", "--preset", "smoke", "--set", "policy.type=broken", home=home, check=False,
+                   env={"PYTHONPATH": str(plugins)})  # fmt: skip
+    assert proc.returncode != 0, proc.stderr
+    line = _one_error_line(proc, "'broken'", "capvector_broken")
+    assert ("sys.exit(0)" if how == "exits" else "no GPU here") in line, line
+    assert not home.exists()
+
+
+def test_duplicate_study_arms_are_refused_before_the_home_is_made(tmp_path):
+    home = tmp_path / "home"
+    proc = run_cli("study", "--preset", "study-smoke", "--set", "study.arms=[sft, capvector, aux, sft]",
+                   home=home, check=False)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    _one_error_line(proc, "study.arms", "sft more than once")
+    assert not home.exists()
+
+
+def test_switching_a_presets_flow_policy_back_to_l1_chunk_warns_in_one_line(tmp_path):
+    """Python's format gave the warning three lines: where it was raised, then that line's source."""
+    from conftest import REPO
+
+    preset = tmp_path / "presets" / "flow.yaml"  # an absolute path, as --preset takes it
+    preset.parent.mkdir()
+    text = (REPO / "flows" / "presets" / "smoke.yaml").read_text()
+    preset.write_text(text.replace("policy: {", "policy: {type: flow, integration_steps: 5, "))
+    proc = run_cli("config", "show", "--preset", str(preset), "--set", "policy.type=l1_chunk",
+                   home=tmp_path / "home")  # fmt: skip
+    assert _lines(proc.stderr) == [
+        "warning: policy.type=l1_chunk: integration_steps do not apply to this type and were dropped"
+    ], proc.stderr
+
+
+@pytest.mark.parametrize("command", ["run", "study", "calibrate", "sweep"])
+def test_a_preset_given_by_its_absolute_path_names_the_log_file_by_its_stem(tmp_path, monkeypatch, command):
+    """`--preset /abs/path/p.yaml` failed every flow command: the log file's name kept the slashes."""
+    from flows import flow_commands
+    from tasks.progress import LOG_FILE_ENV
+
+    monkeypatch.delenv(LOG_FILE_ENV, raising=False)
+    monkeypatch.setenv("CAPVECTOR_QUIET", "1")
+    home = tmp_path / "home"
+    flow_commands._start_log(f"{command} --preset {tmp_path}/my presets/study-small.v2.yaml", str(home))
+    log = Path(os.environ[LOG_FILE_ENV])
+    assert log.parent == home / "logs" and log.name.startswith(f"{command}-study-small.v2-"), log
+    log.write_text("ok")
+    assert flow_commands.log_slug("run --preset smoke") == "run-smoke"  # names as before

@@ -4,9 +4,11 @@ properties of the plan; tests/test_study_flow.py checks that a real run announce
 
 from __future__ import annotations
 
+import pytest
+
 from flows.config import load_config
 from flows.recipe import pipeline_plan
-from flows.study import study_plan
+from flows.study import gated_study_plan, study_plan, study_steps
 from flows.study_config import load_study
 
 
@@ -34,6 +36,40 @@ def test_the_gate_adds_its_analysis_and_nothing_else():
     assert sorted(set(on) - set(off)) == ["analyse study study-smoke (gate)"] and set(off) <= set(on)
 
 
+def test_a_gated_plan_counts_the_steps_before_the_gate_apart_from_those_after_it():
+    """Issue 37: the progress total and `--dry-run` count what runs before the gate; the steps after it
+    (CapVector's arms, θ_meta, θ_null, the final analysis) are counted apart, as run only if it passes."""
+    plan, gate_at = gated_study_plan(load_study("study-smoke", ["study.gate=true"]))
+    assert labels(plan)[gate_at - 1] == "analyse study study-smoke (gate)"
+    after = labels(plan)[gate_at:]
+    assert after[-1] == "analyse study study-smoke"
+    assert not any(a in step for step in after for a in ("sft_from_ao", "sft_from_ft", "demos"))
+    assert any("capvector" in step for step in after) and any("meta" in step for step in after)
+    assert study_steps(load_study("study-smoke", ["study.gate=true"])) == (gate_at, len(plan) - gate_at)
+    ungated = load_study("study-smoke", ["study.gate=false"])
+    assert study_steps(ungated) == (len(study_plan(ungated)), 0)
+
+
+def test_a_passed_gate_grows_the_announced_total_to_the_whole_plan(capfd):
+    """When the gate passes, the runner's `k/N` total grows by the steps after it, so a study that runs
+    every step ends at N/N with N the whole plan."""
+    from flows.steps import PlanRecorder
+    from flows.study import _PlannedStudy, _run_study
+
+    cfg = load_study("study-smoke", ["study.gate=true"])
+    before, after = study_steps(cfg)
+
+    class Counted(PlanRecorder):
+        label, total = "study study-smoke", before
+
+    recorder = Counted()
+    study = _PlannedStudy(cfg, recorder)
+    study.gate_more = after
+    _run_study(study)  # the recorder's gate passes
+    assert recorder.total == before + after == len(recorder.plan)
+    assert f"gate passed: {after} more steps, {before + after} in all" in capfd.readouterr().err
+
+
 def test_another_seed_adds_a_run_and_its_evaluation_per_arm_to_the_pipeline():
     config = load_config("smoke")
     one = labels(pipeline_plan(config))
@@ -59,3 +95,55 @@ def test_a_second_tuning_seed_repeats_every_tuning_run_and_each_selection_averag
         cell = selection.config["candidates"][0]["evaluations"]
         single = next(p for p in one if p.step == selection.step).config["candidates"][0]["evaluations"]
         assert len(cell) == 2 * len(single)  # the cell's score averages both seeds' validations
+
+
+def test_replicates_average_their_draws_and_carry_capvectors_arms():
+    """study.draws_per_replicate = 2: each replicate's γ̄ is a mean step over its two draws' γ, and the
+    arms that start from a vector (and SFT from θ_ao / θ_ft) run once per replicate, not per draw."""
+    cfg = load_study("study-smoke", ["study.draws=[0,1,2,3]", "study.draws_per_replicate=2"])
+    plan = study_plan(cfg)
+    means = [
+        p for p in plan if p.step.startswith("replicate") and p.step.endswith("mean capability vector γ̄")
+    ]
+    assert [sorted(p.inputs) for p in means] == [["vector 0", "vector 1"]] * 2
+    by_label = {p.step: p for p in plan}
+    assert [s for s in by_label if s.endswith("null vector")] == [
+        "replicate 0 null vector",
+        "replicate 1 null vector",
+    ]
+    for arm in ("capvector", "meta_sft", "null_capvector", "sft_from_ao", "sft_from_ft"):
+        runs = [s for s in by_label if s.startswith(f"downstream {arm} ")]
+        assert sorted(runs) == [f"downstream {arm} replicate {r} seed {s}" for r in (0, 1) for s in cfg.seeds]
+    assert [s for s in by_label if " merge θ_meta" in s and not s.startswith("tune")] == [
+        "replicate 0 merge θ_meta",
+        "replicate 1 merge θ_meta",
+    ]
+    with pytest.raises(ValueError, match="split into replicates"):
+        load_study("study-smoke", ["study.draws=[0,1,2]", "study.draws_per_replicate=2"])
+
+
+def test_absolute_lambdas_sit_beside_relative_ones_in_the_grid():
+    """Issue 41: λ in the paper's absolute form (1e-4) and as a multiple of ‖∇ loss‖/‖γ‖, in one grid."""
+    cfg = load_study(
+        "study-smoke",
+        ["study.lambda_scales=[0.0, 0.1]", "study.lambdas=[1.0e-4]", "study.aux_weights=[0.25, 0.5, 1.0]"],
+    )
+    plan = study_plan(cfg)
+    runs = {p.step: p for p in plan if p.step.startswith("tune capvector")}
+    assert sorted(runs) == [
+        "tune capvector α=1.0 λ=0.0",
+        "tune capvector α=1.0 λ=0.1",
+        "tune capvector α=1.0 λ_abs=0.0001",
+    ]
+    orthogonal = {s: p.config["orthogonal"] for s, p in runs.items()}
+    absolute = orthogonal["tune capvector α=1.0 λ_abs=0.0001"]
+    assert (absolute["scale"], absolute["weight"]) == ("absolute", 1.0e-4)
+    assert orthogonal["tune capvector α=1.0 λ=0.1"]["scale"] == "action_gradient"
+    grid = next(p for p in plan if p.step == "select α and λ").config["candidates"]
+    assert [c["values"] for c in grid] == [
+        {"alpha": 1.0, "lambda_scale": 0.0},
+        {"alpha": 1.0, "lambda_scale": 0.1},
+        {"alpha": 1.0, "lambda_absolute": 1.0e-4},
+    ]
+    with pytest.raises(ValueError, match="aux_weights has 2 values, the α × λ grid 3 cells"):
+        load_study("study-smoke", ["study.lambdas=[1.0e-4]"])

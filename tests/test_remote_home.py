@@ -226,3 +226,44 @@ def test_a_fresh_machine_finds_a_step_another_machine_computed(s3_endpoint, tmp_
     first = run_step("worker")
     assert run_step("driver") == first
     assert len(computed) == 1
+
+
+COMMIT_ELSEWHERE = """
+import sys
+from artifacts.store import ArtifactStore
+print(ArtifactStore(sys.argv[1]).put_json({"from": "another process"}, "metrics", "other").id)
+"""
+
+
+def test_a_store_sees_what_another_process_committed_after_it_listed(home, tmp_path):
+    """s3fs caches directory listings and never refreshes them: a store that had listed a shard (or
+    looked for a sidecar there) did not see a sidecar another process wrote into it afterwards, and a
+    study on an S3 home failed with `no artifact …` for an artifact that was in the bucket."""
+    import hashlib
+    import subprocess
+    import sys
+
+    url = f"{home}/store"
+    store = ArtifactStore(url)
+    doc = json.dumps({"from": "another process"}, sort_keys=True, indent=1, ensure_ascii=False).encode()
+    expected = hashlib.sha256(doc).hexdigest()  # a one-file artifact's id is its sha256
+    # this process looks first, at a shard that holds something else (a killed write's leftover)
+    store.put_json({"here": 1}, "metrics", "mine")
+    store.fs.makedirs(store._p("objects", expected[:2], "leftover"), exist_ok=True)
+    store.fs.pipe_file(store._p("objects", expected[:2], "leftover", "data.bin"), b"x")
+    store.fs.find(store._p("objects"))
+    assert not store.exists(expected) and not store.exists(expected[:8])
+
+    made = subprocess.run(
+        [sys.executable, "-c", COMMIT_ELSEWHERE, url],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parent.parent,
+    ).stdout.strip()
+    assert made == expected
+    assert store.exists(expected) and store.exists(expected[:8])
+    assert store.resolve(expected[:8]) == expected
+    assert store.open_json(expected) == {"from": "another process"}
+    assert expected in set(store.iter_ids())
+    assert ArtifactStore(url).get(expected).name == "other"  # a new store in this process too

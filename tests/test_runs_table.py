@@ -32,7 +32,7 @@ def train_config(seed, steps=30, lr=3e-4, aux=None, orthogonal=None, applied=Non
     return {"train_step": step, "summary": summary, **extra}
 
 
-def train(api, name, parents, seed=0, snapshots=(), **kw):
+def train(api, name, parents, seed=0, snapshots=(), flow_run_id=None, **kw):
     """A run as run_train registers it: its snapshots first, then the final checkpoint naming them."""
     config = train_config(seed, **kw)
     snaps = {}
@@ -43,7 +43,7 @@ def train(api, name, parents, seed=0, snapshots=(), **kw):
         ).id
     config["snapshots"] = {str(b): i for b, i in snaps.items()}
     refs = [*parents, *((i, "snapshot", {"budget": b}) for b, i in snaps.items())]
-    return api.register_json({"w": name}, "checkpoint", name, config, refs).id, snaps
+    return api.register_json({"w": name}, "checkpoint", name, config, refs, flow_run_id=flow_run_id).id, snaps
 
 
 def evaluate(api, checkpoint, fp, per_task, tag=""):
@@ -168,6 +168,34 @@ def test_every_trained_run_once_with_its_settings_and_success_per_budget_and_tas
     assert "87.5%" in table and f"protocol {TEST[:12]} test" in table and ids["cap"][:12] in table
 
 
+def test_a_studys_per_draw_and_per_replicate_runs_get_their_arm_draw_study_and_status(home):
+    """Issue 37: `downstream sft_from_ao draw 0 seed 0` and `downstream capvector replicate 0 seed 1` are
+    downstream runs of their arm, draw or replicate (not `other`); a run is labelled with the study its
+    flow run ran (or whose analysis has it in its lineage), that run's state and its training time."""
+    from artifacts.records import RunRecord
+
+    home, ids = home
+    api = ArtifactsAPI(str(home))
+    flow_run = {"flow_run_id": "f-1", "flow_name": "study", "parameters": {"config": {"name": "demo"}}}
+    api.record_run(RunRecord(**flow_run, state="COMPLETED"))
+    from_ao, _ = train(api, "downstream sft_from_ao draw 1 seed 0", [(ids["ao"], "init")], flow_run_id="f-1")
+    meta = api.register_json({"m": 2}, "checkpoint", "replicate 0 merge θ_meta", {}, [(ids["pt"], "base")]).id
+    rep, _ = train(api, "downstream capvector replicate 0 seed 1", [(meta, "init")], seed=1)
+    evaluation = evaluate(api, rep, TEST, {"reach": 1.0})
+    api.register_json({"s": 1}, "study", "analyse study other-study (gate)", {}, [(evaluation, "test")])
+    rows = rows_json(home)
+    got = {k: rows["downstream sft_from_ao draw 1 seed 0"][k] for k in ("stage", "arm", "draw", "study")}
+    assert got == {"stage": "downstream", "arm": "sft_from_ao", "draw": 1, "study": "demo"}
+    assert rows["downstream sft_from_ao draw 1 seed 0"]["status"] == "COMPLETED"
+    cap = rows["downstream capvector replicate 0 seed 1"]
+    assert (cap["stage"], cap["arm"], cap["replicate"], cap["draw"], cap["seed"]) == (
+        "downstream", "capvector", 0, None, 1
+    )  # fmt: skip
+    assert cap["study"] == "other-study" and cap["status"] is None
+    assert rows_json(home, "--arm", "sft_from_ao").keys() == {"downstream sft_from_ao draw 1 seed 0"}
+    assert rows_json(home, "--stage", "other") == {}
+
+
 def test_filters(home):
     home, _ = home
     assert set(rows_json(home, "--arm", "sft")) == {"downstream sft seed 0", "downstream sft seed 1"}
@@ -225,8 +253,10 @@ def test_a_column_never_mixes_protocols(home):
     home, ids = home
     api = ArtifactsAPI(str(home))
     evaluate(api, ids["ft"], TEST_B, {"reach": 1.0})  # another test-goal protocol, a task in common
-    result = CliRunner().invoke(app, ["--home", str(home), "runs"])
+    result = CliRunner().invoke(app, ["--home", str(home), "runs", "--fingerprint", "test"])  # asked: both
     assert result.exit_code != 0 and "task reach was evaluated under 2" in str(result.exception)
+    table = invoke(home, "runs").stdout  # one protocol per table unless asked: the most evaluated one
+    assert f"protocol {TEST[:12]} test" in table and f"not shown: {TEST_B[:12]} test" in table
     rows = rows_json(home, "--fingerprint", TEST_B[:8])
     assert rows["draw 1 standard SFT θ_ft"]["reach@20"] == 1.0 and "push@30" not in rows["pretrain θ_pt"]
     bad = CliRunner().invoke(app, ["--home", str(home), "runs", "--fingerprint", "ffffff"])

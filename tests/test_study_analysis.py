@@ -89,7 +89,7 @@ def _study(ws: Workspace, draws: list[int], seeds: list[int]) -> tuple[dict[str,
 
 def test_known_effects_are_found_and_preconditions_follow_the_evidence(tmp_path):
     ws = Workspace(tmp_path / "home")
-    inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1, 2])
+    inputs, design = _study(ws, draws=[0, 1, 2], seeds=[0, 1, 2])  # (b), (d): one run per draw, 2 df
     report = analyse(ws, inputs, design)
     main = next(
         c for c in report.comparisons if (c.arm, c.baseline, c.budget) == ("capvector", "sft", ENDPOINT)
@@ -105,6 +105,7 @@ def test_known_effects_are_found_and_preconditions_follow_the_evidence(tmp_path)
     assert verdicts["a"] is False  # θ_ao's held-out loss still fell 40 % over the second half
     assert verdicts["b"] is True
     assert verdicts["c"] is not True  # no true difference
+    assert verdicts["c_prime"] is True  # SFT from θ_ao 0.5 against SFT 0.3
     assert verdicts["d"] is False
     assert report.goals_per_task == GOALS and report.tasks == sorted(TASKS)
     assert design.at_edge() == []  # 1.0 is inside [0.5, 2]; two-value grids have no inside
@@ -125,12 +126,13 @@ def test_the_gate_stops_a_study_whose_benefit_does_not_transfer(tmp_path):
     """(b) holds but (c) is not shown: the gate-stage report says why the question is untestable, and
     the flow's check (`gate_passed`) reads it from the stored artifact."""
     ws = Workspace(tmp_path / "home")
-    inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1, 2])
+    inputs, design = _study(ws, draws=[0, 1, 2], seeds=[0, 1, 2])
     gate = design.model_copy(update={"stage": "gate"})
     report_id = run_analyse_study(ws, "analyse (gate)", inputs, gate.model_dump(mode="json"))
     assert not gate_passed(ws, report_id)
     report = analyse(ws, inputs, gate)
     assert "untestable" in report.gate and "(c)" in report.gate and "(b)" not in report.gate
+    assert "(c′)" not in report.gate  # (c′) holds here: only (c) stops it
     assert analyse(ws, inputs, design).gate is None  # the final stage never gates
 
 
@@ -168,24 +170,48 @@ def _tensors_file(ws: Workspace, tmp_path, name: str, tensors: dict, kind: str) 
     return ws.api.register_file(path, kind, name).id
 
 
-def test_precondition_e_measures_how_alike_the_draws_are_against_seed_noise(tmp_path):
+def test_precondition_e_estimates_the_signal_fraction_and_norm_with_intervals(tmp_path):
+    """γ^d = s + noise^d with a known signal fraction ρ: ρ̂ (mean pairwise cosine) and ‖ŝ‖ (from the
+    pairwise dot products) find it, with jackknife intervals over draws; replicate means agree as ρ̂
+    predicts; cos(γ, θ_ft − θ_pt) is reported."""
     import torch
 
+    from tasks.study_inputs import Pretrained, ReplicateVector
+    from tasks.vectors import run_mean_vector
+
     ws = Workspace(tmp_path / "home")
-    inputs, design = _study(ws, draws=[0, 1], seeds=[0, 1])
-    base = torch.randn(50, generator=torch.Generator().manual_seed(0))
-    gamma = {0: {"w": base * 3}, 1: {"w": base * 3 + 0.1 * torch.randn(50)}}
-    ft = {0: {"w": torch.zeros(50)}, 1: {"w": torch.full((50,), 0.1)}}  # seed noise ‖·‖ = 0.71
-    for d in (0, 1):
-        inputs[CapabilityVector(draw=d).key] = _tensors_file(ws, tmp_path, f"gamma{d}", gamma[d], "vector")
-        inputs[StandardRun(draw=d).key] = _tensors_file(ws, tmp_path, f"ft{d}", ft[d], "checkpoint")
+    inputs, design = _study(ws, draws=[0, 1, 2, 3], seeds=[0, 1])
+    g = torch.Generator().manual_seed(0)
+    n, rho = 200_000, 0.25
+    signal = torch.randn(n, generator=g) * rho**0.5
+    vectors = {}
+    for d in range(4):
+        gamma = {"w": signal + torch.randn(n, generator=g) * (1 - rho) ** 0.5}
+        vectors[d] = _tensors_file(ws, tmp_path, f"gamma{d}", gamma, "vector")
+        inputs[CapabilityVector(draw=d).key] = vectors[d]
+        ft = {"w": gamma["w"] * 0.5 + torch.randn(n, generator=g)}
+        inputs[StandardRun(draw=d).key] = _tensors_file(ws, tmp_path, f"ft{d}", ft, "checkpoint")
+    inputs[Pretrained().key] = _tensors_file(ws, tmp_path, "pt", {"w": torch.zeros(n)}, "checkpoint")
+    for r in range(2):
+        pair = {f"vector {i}": vectors[2 * r + i] for i in range(2)}
+        inputs[ReplicateVector(replicate=r).key] = run_mean_vector(ws, f"replicate {r}", pair, {})
     e = next(p for p in analyse(ws, inputs, design).preconditions if p.key == "e")
-    assert e.holds is True and e.detail_values["mean_cosine"] > 0.99
-    assert e.detail_values["seed_noise_norm"] == pytest.approx(0.1 * 50**0.5, rel=1e-5)
-    opposite = {"w": -gamma[0]["w"]}
-    inputs[CapabilityVector(draw=1).key] = _tensors_file(ws, tmp_path, "gamma1-opposite", opposite, "vector")
+    v = e.detail_values
+    assert v["rho"] == pytest.approx(rho, abs=0.01)
+    assert v["rho_low"] < v["rho"] < v["rho_high"] and v["rho_low"] > 0 and e.holds is True
+    assert v["signal_norm"] == pytest.approx((rho * n) ** 0.5, rel=0.03)
+    assert v["signal_norm_low"] <= v["signal_norm"] <= v["signal_norm_high"]
+    assert v["replicate_cos"] == pytest.approx(v["replicate_cos_predicted"], abs=0.03)  # 2ρ/(1+ρ) = 0.4
+    assert v["cos_ft_reference"] > 0.3  # θ_ft − θ_pt carries half of γ here
+    assert "ρ̂ 0.2" in e.detail and "replicates of 2 draws" in e.detail
+    noise_only = {
+        d: _tensors_file(ws, tmp_path, f"noise{d}", {"w": torch.randn(n, generator=g)}, "vector")
+        for d in range(4)
+    }
+    for d, vector in noise_only.items():
+        inputs[CapabilityVector(draw=d).key] = vector
     e = next(p for p in analyse(ws, inputs, design).preconditions if p.key == "e")
-    assert e.holds is False and e.detail_values["mean_cosine"] == pytest.approx(-1.0)
+    assert e.holds is None and abs(e.detail_values["rho"]) < 0.01  # no shared direction: not shown
 
 
 def test_the_secondary_endpoint_pairs_held_out_losses_by_draw_and_seed(tmp_path):

@@ -137,16 +137,21 @@ def test_the_study_report_has_figures_and_no_interval_outside_its_range(study_ho
     assert "wrote" in latest.stdout and (tmp_path / "latest.md").exists()
 
 
-def test_a_second_run_is_answered_by_the_cache(study_home):
-    home, ids = study_home
-    again = json.loads(run_cli("study", "--preset", "study-smoke", "--json", home=home).stdout)
-    assert again["report"] == ids["report"]
+def _progress_lines(home: Path) -> list[str]:
+    """The newest study log's `[study study-smoke k/N] step: done|cached` lines."""
     log = max((home / "logs").glob("study-*.log"), key=lambda p: p.stat().st_mtime)
-    lines = [
+    return [
         line
         for line in log.read_text().splitlines()
         if "] " in line and line.rstrip().endswith(("done", "cached"))
     ]
+
+
+def test_a_second_run_is_answered_by_the_cache(study_home):
+    home, ids = study_home
+    again = json.loads(run_cli("study", "--preset", "study-smoke", "--json", home=home).stdout)
+    assert again["report"] == ids["report"]
+    lines = _progress_lines(home)
     assert lines and all(line.endswith("cached") for line in lines)
     counts = [re.search(r"\[study study-smoke (\d+)/(\d+)\]", line) for line in lines]
     assert [int(m.group(1)) for m in counts] == list(range(1, len(lines) + 1))
@@ -156,11 +161,23 @@ def test_a_second_run_is_answered_by_the_cache(study_home):
 def test_a_gate_that_fails_stops_the_study_and_says_why(study_home):
     """On the same home with the gate on: everything before the gate is cached; tiny runs show no
     benefit from the auxiliary objective, so the report says the question is untestable and CapVector's
-    arms are never trained."""
+    arms are never trained. The dry run's count before the gate is the number of steps the gated run
+    then runs (issue 37: it said "all 269 steps cached" of a study that ran 151), and its progress
+    counts to that number."""
     home, ids = study_home
-    gated = json.loads(
-        run_cli("study", "--preset", "study-smoke", "--set", "study.gate=true", "--json", home=home).stdout
-    )
+    gate = ("study", "--preset", "study-smoke", "--set", "study.gate=true")
+    dry = run_cli(*gate, "--dry-run", home=home).stdout
+    counted = re.search(r"(\d+) of (\d+) steps to run .* before the gate, (\d+) after it if the gate", dry)
+    assert counted, dry
+    before, after = int(counted.group(2)), int(counted.group(3))
+    assert int(counted.group(1)) == 1  # only the gate's analysis is new on this home
+    assert dry.count("\ngated ") == after and "to run  analyse study study-smoke (gate)" in dry
+    gated = json.loads(run_cli(*gate, "--json", home=home).stdout)
+    lines = _progress_lines(home)
+    counts = [re.search(r"\[study study-smoke (\d+)/(\d+)\]", line) for line in lines]
+    assert len(lines) == before and {int(m.group(2)) for m in counts} == {before}
+    again = run_cli(*gate, "--dry-run", home=home).stdout
+    assert f"all {before} steps up to the gate cached; the gate did not pass, so the {after} after" in again
     ws = Workspace(home)
     report = StudyReport.model_validate(ws.api.store.open_json(gated["report"]))
     assert report.design.stage == "gate" and "untestable" in report.gate

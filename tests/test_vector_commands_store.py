@@ -293,3 +293,19 @@ def test_copies_go_through_user_space_where_the_kernel_cannot_copy(tmp_path, mon
     vector_ops.extract(pa, pb, tmp_path / "g.safetensors", hashes=hashes, copies=copies)
     assert all(copies[p].read_bytes() == p.read_bytes() for p in (pa, pb))
     assert hashes[copies[pa]] == _sha(pa) and hashes[copies[pb]] == _sha(pb)
+
+
+def test_a_repeated_vector_stats_reuses_its_artifact(user):
+    """Issue 37: `vector stats` called again on the same vector (by path or by id) registers nothing new
+    and says that it reused its artifact; another base is other statistics, another artifact."""
+    workspace, folder, p = user
+    gamma = extract_cli(workspace, str(p["ao"]), str(p["ft"]), folder / "g.safetensors", None, None, None)
+    rows, first, reused = stats_cli(workspace, gamma.id, None, None)
+    assert rows and not reused and first.kind == "vector_stats"
+    before = _ids(workspace)
+    for ref in (gamma.id, str(folder / "g.safetensors"), gamma.id[:12]):
+        _, again, reused = stats_cli(workspace, ref, None, None)
+        assert again.id == first.id and reused
+    assert _ids(workspace) == before
+    _, with_base, reused = stats_cli(workspace, gamma.id, str(p["pt"]), None)
+    assert with_base.id != first.id and not reused

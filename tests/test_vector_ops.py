@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 import tracemalloc
 from pathlib import Path
 
@@ -185,7 +186,7 @@ def test_partial_vector_and_wrong_base(tmp_path):
         got["backbone.layers.0.weight"],
         pt["backbone.layers.0.weight"] + ao["backbone.layers.0.weight"] - ft["backbone.layers.0.weight"],
     )
-    with pytest.raises(VectorOpError, match="force=True"):
+    with pytest.raises(VectorOpError, match="--force"):
         merge(p_other, [(g, 1.0)], tmp_path / "wrong.safetensors")
     assert not (tmp_path / "wrong.safetensors").exists()
     merge(p_other, [(g, 1.0)], tmp_path / "forced.safetensors", force=True)
@@ -359,10 +360,14 @@ def test_vector_commands_register_inputs_and_output_once_they_succeed(user):
 def test_identical_rerun_registers_an_output_written_but_never_registered(user, sharded):
     """Killed between writing `-o` and registering it: the same command again registers that output."""
     from tasks.vector_commands import extract_cli, merge_cli
+    from tasks.workspace import Workspace
 
     workspace, folder, p = user
     out = folder / ("gamma" if sharded else "gamma.safetensors")
-    extract(p["ao"], p["ft"], out, base=p["pt"])  # what the killed command had written
+    # what the killed command had written (a folder output carries the command's model card)
+    extract_cli(
+        Workspace(str(folder.parent / "elsewhere")), str(p["ao"]), str(p["ft"]), out, str(p["pt"]), None, None
+    )
     mtime = out.stat().st_mtime_ns
     record = extract_cli(workspace, str(p["ao"]), str(p["ft"]), out, str(p["pt"]), None, None)
     assert out.stat().st_mtime_ns == mtime  # left as it was
@@ -509,3 +514,50 @@ def test_stats_memory_does_not_grow_with_the_tensor(tmp_path, monkeypatch):
         tracemalloc.stop()
     assert rows[0].numel == 1 << 21 and rows[0].cosine is not None
     assert peak < 4 << 20, f"peak {peak / 2**20:.1f} MiB for 8 MiB tensors read in 64 KiB pieces"
+
+
+THREADED = """
+import hashlib, json, sys
+import torch
+torch.set_num_threads(int(sys.argv[1]))
+from capvector_core import vector_ops
+v, base, ref, null = sys.argv[2:6]
+rows = vector_ops.stats(v, base=base, reference_vector=ref)
+vector_ops.null_vector(v, null, seed=3)
+print(json.dumps([r.model_dump() for r in rows], sort_keys=True))
+print(hashlib.sha256(open(null, "rb").read()).hexdigest())
+"""
+
+
+def test_stats_and_null_vector_bytes_do_not_depend_on_the_thread_count(tmp_path):
+    """The `vector_stats` of γ had one id in the step pool and another on a Dask worker (whose nanny
+    sets one BLAS/OpenMP thread): its sums were BLAS dots, whose order of additions follows the thread
+    count. The stats and the null vector (scaled by such a sum) are the same bytes with 1 or 2 threads."""
+    import subprocess
+    import sys
+
+    gen = torch.Generator().manual_seed(0)
+    paths = []
+    for name in ("v", "base", "ref"):  # over OpenBLAS's 10,000 elements, below which a dot is serial
+        t = {"blocks.0.w": torch.randn(300_000, generator=gen), "head.b": torch.randn(7, generator=gen)}
+        save_file(t, tmp_path / f"{name}.safetensors")
+        paths.append(str(tmp_path / f"{name}.safetensors"))
+    out = {}
+    for n in (1, 2):
+        env = {
+            **os.environ,
+            "OMP_NUM_THREADS": str(n),
+            "OPENBLAS_NUM_THREADS": str(n),
+            "MKL_NUM_THREADS": str(n),
+        }
+        null = str(tmp_path / f"null{n}.safetensors")
+        proc = subprocess.run(
+            [sys.executable, "-c", THREADED, str(n), *paths, null],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=Path(__file__).resolve().parent.parent,
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[n] = proc.stdout
+    assert out[1] == out[2]
