@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 run: install
-	$(VENV)/bin/capvector study --preset study-control-hard-extraction-small
+	$(VENV)/bin/capvector study --preset study-control-hard-extraction-3seeds
 
 test: install
 	$(PY) -m ruff check .

@@ -317,10 +317,10 @@ def study(
     preset: Annotated[
         str,
         typer.Option(
-            help="study-control-hard-extraction-small | study-control-hard-extraction | study-control-small "
+            help="study-control-hard-extraction-3seeds | study-control-hard-extraction | study-control-small "
             "| study-state | study-pixels | a YAML path"
         ),
-    ] = "study-control-hard-extraction-small",
+    ] = "study-control-hard-extraction-3seeds",
     overrides: SetOption = None,
     home: HomeOption = None,
     report: Annotated[

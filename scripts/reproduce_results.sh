@@ -15,8 +15,10 @@
 #   control-large-2000 -> docs/studies/study_control_small_large_2000.md  3 draws, 2000-step extraction runs
 #   control-hard-extraction-split -> docs/studies/study_control_small_hard_extraction.md  `control-small` with the six
 #                      hardest calibrated tasks for extraction (room for precondition b), the nine others downstream
-#   control-hard-extraction-small -> docs/studies/study_control_hard_extraction_small.md  the default of `make run`:
+#   control-hard-extraction-small -> docs/studies/study_control_hard_extraction_small.md  `make run` until issue 41:
 #                      the same split with the larger policy (d_model 128 x 4 layers) and 3 γ draws
+#   control-hard-extraction-3seeds -> docs/studies/study_control_hard_extraction_3seeds.md  the default of `make run`
+#                      since issue 41: the same with 3 training seeds and 2 tuning seeds
 #   control-hard-extraction-large-5draws -> docs/studies/study_control_small_hard_extraction_large_5draws.md  the
 #                      same with 5 γ draws and 20 test goals per task (the size its report asks for)
 #   control-hard-extraction -> docs/studies/study_control_hard_extraction.md  the study that answers the question:
@@ -31,15 +33,16 @@
 #                    pixels gate actually run on a lent GPU is docs/studies/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
 #        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|
-#        control-hard-extraction|control-hard-extraction-small|
+#        control-hard-extraction|control-hard-extraction-small|control-hard-extraction-3seeds|
 #        control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|control-hard-extraction-flow|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/studies/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-preset="${1:-control-hard-extraction-small}"
+preset="${1:-control-hard-extraction-3seeds}"
 case "$preset" in
-  control-small | control | control-hard | control-hard-extraction | control-hard-extraction-small | state | pixels)
+  control-small | control | control-hard | control-hard-extraction | control-hard-extraction-small | \
+  control-hard-extraction-3seeds | state | pixels)
     .venv/bin/capvector study --preset "study-$preset" --report "docs/studies/study_${preset//-/_}.md" ;;
   control-10000)
     .venv/bin/capvector study --preset study-control --set 'study.draws=[0,1,2]' --set 'seeds=[0,1,2]' \
