@@ -521,7 +521,12 @@ def test_on_a_smoke_run_every_edge_appears_in_the_lineage_views(smoke_home):
     }
     assert len(edges) > 17  # data, init, minuend/subtrahend, base, vector, evaluations, report inputs
     mermaid = invoke(home, "lineage", report, "--format", "mermaid").stdout
-    drawn = set(re.findall(r'n([0-9a-f]{12})\["[^"]*"\] -->\|([^|]+)\| n([0-9a-f]{12})\[', mermaid))
+    drawn = {  # an edge's label is its role, a merge's vector edge with its α ("vector α=1.1")
+        (parent, label.split(" α=")[0], child)
+        for parent, label, child in re.findall(
+            r'n([0-9a-f]{12})\["[^"]*"\] -->\|([^|]+)\| n([0-9a-f]{12})\[', mermaid
+        )
+    }
     assert edges <= drawn, sorted(edges - drawn)
     tree = invoke(home, "lineage", report).stdout
     for parent, _, child in edges:

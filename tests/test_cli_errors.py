@@ -174,7 +174,8 @@ def test_a_preset_given_by_its_absolute_path_names_the_log_file_by_its_stem(tmp_
     from flows import flow_commands
     from tasks.progress import LOG_FILE_ENV
 
-    monkeypatch.delenv(LOG_FILE_ENV, raising=False)
+    monkeypatch.setenv(LOG_FILE_ENV, "")  # unset for _start_log, and restored after (delenv of an unset
+    # variable records nothing, so the path _start_log sets would leak into every later test's CLI)
     monkeypatch.setenv("CAPVECTOR_QUIET", "1")
     home = tmp_path / "home"
     flow_commands._start_log(f"{command} --preset {tmp_path}/my presets/study-small.v2.yaml", str(home))
