@@ -1115,10 +1115,10 @@ def null_vector(
         squares, size = 0.0, 0
         for x in reader.chunks(n, bounds):
             wide = _widen(x, dtype).astype(np.float64)
-            squares += _dot(wide, wide)
+            squares += stable_dot(wide, wide)
             size += x.size
         noise = rng.standard_normal(size)
-        length = math.sqrt(_dot(noise, noise))
+        length = math.sqrt(stable_dot(noise, noise))
         noise *= math.sqrt(squares) / length if length > 0 else 0.0
         yield _narrow(noise.astype(_wide(dtype)), dtype)
 
@@ -1160,7 +1160,7 @@ class VectorStat(BaseModel):
     sign_agreement: float | None = None  # share of elements, both non-zero, with equal signs
 
 
-def _dot(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> float:
+def stable_dot(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> float:
     """a · b in float64 with the same bits whatever the thread count and BLAS: the products summed by
     numpy's pairwise summation, whose order follows the length alone. A BLAS dot splits its sum among
     its threads (OpenBLAS above 10,000 elements), so the last digits of a norm, hence the id of the
@@ -1236,14 +1236,14 @@ def _tensor_sums(
         if products is None or products.size < g.size:
             products = buffers["products"] = np.empty(max(g.size, step), np.float64)
         products = products[: g.size]
-        s["sq"] += _dot(g, g, products)
+        s["sq"] += stable_dot(g, g, products)
         if "base" in others:
             w = _float64_chunk(others["base"], name, i, j, buffers, "base")
-            s["bsq"] += _dot(w, w, products)
+            s["bsq"] += stable_dot(w, w, products)
         if "reference_vector" in others:
             r = _float64_chunk(others["reference_vector"], name, i, j, buffers, "reference_vector")
-            s["rsq"] += _dot(r, r, products)
-            s["dot"] += _dot(g, r, products)
+            s["rsq"] += stable_dot(r, r, products)
+            s["dot"] += stable_dot(g, r, products)
             sg, sr = np.sign(g), np.sign(r)
             both = (sg != 0) & (sr != 0)
             s["both"] += float(np.count_nonzero(both))

@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict
 
 from artifacts.scores import read_episodes, read_scores
 from capvector_core.safetensors_io import Checkpoint
+from capvector_core.vector_ops import stable_dot
 from capvector_stats.paired_differences import (
     ENDPOINT,
     SHARED_DRAW,
@@ -257,37 +258,21 @@ def _preconditions(
             measured=ext is not None,
         )
     )
-    upper = next(
-        (
-            c
-            for c in comparisons
-            if (c.arm, c.baseline) == ("sft_from_ao", "sft_from_ft") and c.budget == ENDPOINT
-        ),
-        None,
-    )
     result.append(
-        Precondition(
-            key="c",
-            claim="downstream SFT from θ_ao beats SFT from θ_ft on D_down (something to transfer)",
-            holds=_verdict(upper) if upper else None,
-            detail=upper.summary() if upper else "not run (arms sft_from_ao, sft_from_ft)",
-            comparison=upper,
-            measured=upper is not None,
+        _from_comparison(
+            comparisons,
+            "c",
+            "downstream SFT from θ_ao beats SFT from θ_ft on D_down (something to transfer)",
+            ("sft_from_ao", "sft_from_ft"),
         )
     )
-    start = next(
-        (c for c in comparisons if (c.arm, c.baseline) == ("sft_from_ao", "sft") and c.budget == ENDPOINT),
-        None,
-    )
     result.append(
-        Precondition(
-            key="c_prime",
-            claim="downstream SFT from θ_ao beats SFT from θ_pt on D_down (θ_ao's weights hold something "
+        _from_comparison(
+            comparisons,
+            "c_prime",
+            "downstream SFT from θ_ao beats SFT from θ_pt on D_down (θ_ao's weights hold something "
             "beyond θ_pt: what a method that only changes the starting weights can carry)",
-            holds=_verdict(start) if start else None,
-            detail=start.summary() if start else "not run (arms sft_from_ao, sft)",
-            comparison=start,
-            measured=start is not None,
+            ("sft_from_ao", "sft"),
         )
     )
     merged = _compare(episodes_ext, "meta", "pt", 0, n_boot)
@@ -310,6 +295,22 @@ def _preconditions(
     return result
 
 
+def _from_comparison(
+    comparisons: list[Comparison], key: str, claim: str, arms: tuple[str, str]
+) -> Precondition:
+    """A precondition that is an endpoint comparison of two downstream arms: shown when its interval
+    lies above 0."""
+    found = next((c for c in comparisons if (c.arm, c.baseline) == arms and c.budget == ENDPOINT), None)
+    return Precondition(
+        key=key,
+        claim=claim,
+        holds=_verdict(found) if found else None,
+        detail=found.summary() if found else f"not run (arms {arms[0]}, {arms[1]})",
+        comparison=found,
+        measured=found is not None,
+    )
+
+
 def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Precondition:
     """(e): how much of γ is signal. With γ^d = s + noise^d (noise independent between draws),
     ⟨γ^d, γ^d′⟩ estimates ‖s‖² and cos(γ^d, γ^d′) the signal fraction ρ; jackknife intervals over draws
@@ -329,7 +330,8 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
     flat = {d: np.concatenate([g[n] for n in names]) for d, g in gammas.items()}
     fts = {d: np.concatenate(list(_flat(Checkpoint(p), names).values())) for d, p in sorted(standard.items())}
     draws = sorted(flat)
-    dots = {(a, b): _dot(flat[a], flat[b]) for a, b in itertools.combinations_with_replacement(draws, 2)}
+    with_self = itertools.combinations_with_replacement(draws, 2)
+    dots = {(a, b): stable_dot(flat[a], flat[b]) for a, b in with_self}
     norms = {d: math.sqrt(dots[d, d]) for d in draws}
 
     def signal(kept: list[int]) -> tuple[float, float]:
@@ -363,7 +365,7 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
             f"[{values['signal_norm_low']:.2f}, {values['signal_norm_high']:.2f}] (95 % jackknife over draws)"
         )
     noise = [
-        math.sqrt(_dot(fts[a] - fts[b], fts[a] - fts[b]))
+        math.sqrt(stable_dot(fts[a] - fts[b], fts[a] - fts[b]))
         for a, b in itertools.combinations(draws, 2)
         if a in fts and b in fts
     ]
@@ -375,27 +377,11 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
         for d in draws:
             if d in fts:
                 delta = fts[d] - base
-                scale = math.sqrt(_dot(delta, delta)) * norms[d]
-                cosines.append(_dot(flat[d], delta) / scale if scale else math.nan)
+                scale = math.sqrt(stable_dot(delta, delta)) * norms[d]
+                cosines.append(stable_dot(flat[d], delta) / scale if scale else math.nan)
         values["cos_ft_reference"] = float(np.mean(cosines))
         reference = f"; cos(γ^d, θ_ft^d − θ_pt) {', '.join(f'{c:+.2f}' for c in cosines)}"
-    replicates = ""
-    means = {k.replicate: workspace.path(v) for k, v in inputs_of(inputs, ReplicateVector)}
-    if len(means) >= 2:
-        flat_means = {r: np.concatenate(list(_flat(Checkpoint(p), names).values())) for r, p in means.items()}
-        pairs = list(itertools.combinations(sorted(flat_means), 2))
-        cos = [
-            _dot(flat_means[a], flat_means[b])
-            / math.sqrt(_dot(flat_means[a], flat_means[a]) * _dot(flat_means[b], flat_means[b]))
-            for a, b in pairs
-        ]
-        k = len(draws) // len(means)
-        values["replicate_cos"] = float(np.mean(cos))
-        values["replicate_cos_predicted"] = _mean_vector_cos(k, rho) ** 2
-        replicates = (
-            f"; {len(means)} replicates of {k} draws: mean cos(γ̄^r, γ̄^r′) {values['replicate_cos']:.2f} "
-            f"(ρ̂ predicts {values['replicate_cos_predicted']:.2f})"
-        )
+    replicates = _replicate_agreement(workspace, inputs, names, len(draws), values)
     holds = None if "rho_low" not in values else True if values["rho_low"] > 0 else None
     detail = (
         f"ρ̂ {rho:.2f}{intervals or ' (an interval needs 3 draws)'}; so the mean of these {len(draws)} draws "
@@ -408,17 +394,32 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
     )
 
 
+def _replicate_agreement(
+    workspace: Workspace, inputs: dict[str, str], names: list[str], n_draws: int, values: dict[str, float]
+) -> str:
+    """With replicate vectors γ̄^r: their mean pairwise cosine against what ρ̂ predicts for means of
+    K draws (K ρ / (K ρ + 1 − ρ)), added to `values`; the detail's sentence ("" without replicates)."""
+    means = {k.replicate: workspace.path(v) for k, v in inputs_of(inputs, ReplicateVector)}
+    if len(means) < 2:
+        return ""
+    flat = {r: np.concatenate(list(_flat(Checkpoint(p), names).values())) for r, p in means.items()}
+    cos = [
+        stable_dot(flat[a], flat[b]) / math.sqrt(stable_dot(flat[a], flat[a]) * stable_dot(flat[b], flat[b]))
+        for a, b in itertools.combinations(sorted(flat), 2)
+    ]
+    k = n_draws // len(means)
+    values["replicate_cos"] = float(np.mean(cos))
+    values["replicate_cos_predicted"] = _mean_vector_cos(k, values["rho"]) ** 2
+    return (
+        f"; {len(means)} replicates of {k} draws: mean cos(γ̄^r, γ̄^r′) {values['replicate_cos']:.2f} "
+        f"(ρ̂ predicts {values['replicate_cos_predicted']:.2f})"
+    )
+
+
 def _mean_vector_cos(k: int, rho: float) -> float:
     """cos(γ̄_K, s) of the mean of K draws whose signal fraction is ρ (clipped to [0, 1])."""
     rho = min(max(rho, 0.0), 1.0)
     return math.sqrt(k * rho / (k * rho + 1 - rho)) if rho > 0 else 0.0
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """a · b with the products summed exactly (math.fsum): the same bits whatever BLAS threads the
-    process has (a Dask worker runs with one, the step pool with several; a BLAS dot changed the last
-    digits, hence the study's id)."""
-    return math.fsum(np.multiply(a, b))
 
 
 def _flat(checkpoint: Checkpoint, names: list[str] | None = None) -> dict[str, np.ndarray]:
