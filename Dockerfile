@@ -13,6 +13,7 @@ COPY capvector_stats ./capvector_stats
 COPY artifacts ./artifacts
 COPY tasks ./tasks
 COPY flows ./flows
+COPY capvector ./capvector
 # CPU build of torch first (the same pin as the project), then the project. As in the Makefile:
 # `--build-arg TORCH_INDEX=` takes torch from PyPI alone (the CUDA build on Linux).
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu

@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING, Any
 import duckdb
 from pydantic import BaseModel
 
-from artifacts import home as home_mod
-from artifacts.catalogue import (
+from capvector.artifacts import home as home_mod
+from capvector.artifacts.catalogue import (
     EVALUATION_KIND,
     VECTOR_STATS_KIND,
     Catalogue,
@@ -32,8 +32,14 @@ from artifacts.catalogue import (
     VerifyReport,
     load_doc,
 )
-from artifacts.errors import ArtifactError, ArtifactNotFound, CatalogueBusy, CorruptArtifact, UnknownParent
-from artifacts.records import (
+from capvector.artifacts.errors import (
+    ArtifactError,
+    ArtifactNotFound,
+    CatalogueBusy,
+    CorruptArtifact,
+    UnknownParent,
+)
+from capvector.artifacts.records import (
     ArtifactRecord,
     EvaluationDoc,
     MergedVector,
@@ -43,7 +49,7 @@ from artifacts.records import (
     TensorStat,
     VectorStatsDoc,
 )
-from artifacts.store import ArtifactStore, ParentLike
+from capvector.artifacts.store import ArtifactStore, ParentLike
 
 if TYPE_CHECKING:
     import pandas as pd

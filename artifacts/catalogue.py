@@ -58,9 +58,9 @@ from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 import duckdb
 from pydantic import BaseModel, Field
 
-from artifacts.errors import ArtifactNotFound, CatalogueBusy, CorruptArtifact, MixedFingerprints
-from artifacts.readonly_sql import READ_ONLY_CONFIG, check_read_only
-from artifacts.records import (
+from capvector.artifacts.errors import ArtifactNotFound, CatalogueBusy, CorruptArtifact, MixedFingerprints
+from capvector.artifacts.readonly_sql import READ_ONLY_CONFIG, check_read_only
+from capvector.artifacts.records import (
     ArtifactRecord,
     EvaluationDoc,
     LineageRow,
@@ -70,7 +70,7 @@ from artifacts.records import (
     VectorStatsDoc,
     utcnow,
 )
-from artifacts.schema import ARTIFACT_COLUMNS, DATA_TABLES, MIGRATIONS, check_version, migrate
+from capvector.artifacts.schema import ARTIFACT_COLUMNS, DATA_TABLES, MIGRATIONS, check_version, migrate
 
 if TYPE_CHECKING:  # pandas only where a DataFrame is made: the read-only CLI commands never import it
     import pandas as pd

@@ -19,7 +19,7 @@ import re
 
 import duckdb
 
-from artifacts.errors import ReadOnlyViolation
+from capvector.artifacts.errors import ReadOnlyViolation
 
 READ_ONLY_CONFIG = {"enable_external_access": False, "lock_configuration": True, "threads": 1}
 ALLOWED_TYPES = {

@@ -9,8 +9,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from artifacts.errors import PathEscape
-from artifacts.hashing import canonical_json
+from capvector.artifacts.errors import PathEscape
+from capvector.artifacts.hashing import canonical_json
 
 # 2: the sidecar carries `metadata_sha256`, a seal over its metadata. 1: written before sealing
 # ("unsealed"): still read, reported by `capvector verify`.
@@ -186,7 +186,7 @@ class EvaluationDoc(BaseModel):
     """Content of a `kind="evaluation"` artifact; the catalogue's eval tables are derived from it.
 
     Its episodes are the only record of its scores: readers get them from the catalogue
-    (artifacts.scores), and the sidecar carries none (older sidecars' copies are never read).
+    (capvector.artifacts.scores), and the sidecar carries none (older sidecars' copies are never read).
 
     Only what the checkpoint, the protocol and the library versions determine, so the same evaluation
     has the same id wherever and whenever it runs. When it ran is provenance: the sidecar's

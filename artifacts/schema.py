@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import duckdb
 
-from artifacts.errors import SchemaTooNew
+from capvector.artifacts.errors import SchemaTooNew
 
 V1 = """
 CREATE TABLE artifacts (

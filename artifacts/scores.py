@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ConfigDict, computed_field
 
-from artifacts.api import ArtifactsAPI
-from artifacts.catalogue import EVALUATION_KIND, load_doc, rows_for
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.catalogue import EVALUATION_KIND, load_doc, rows_for
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -33,7 +33,7 @@ Integrity: nothing wrong is ever served under a trusted id.
   rename, with the hashes its writer took, not copied and hashed once more.
 - Metadata: the sidecar carries a seal, sha256 of its canonical metadata (records.metadata_digest);
   an edited sidecar is refused naming the id. Format-1 sidecars (written before sealing) still load,
-  as unsealed, unless `unsealed_guard` (set by artifacts.api) knows the artifact was registered
+  as unsealed, unless `unsealed_guard` (set by capvector.artifacts.api) knows the artifact was registered
   sealed: a stripped seal is then refused like a broken one. The seal catches accidental edits and
   tooling bugs, not a writer who recomputes it.
 - `audit()` is the full check behind `capvector verify`: no memo, no writes.
@@ -61,8 +61,8 @@ from typing import Any, BinaryIO
 from fsspec.implementations.local import LocalFileSystem
 from pydantic import BaseModel
 
-from artifacts import home as home_mod
-from artifacts.errors import (
+from capvector.artifacts import home as home_mod
+from capvector.artifacts.errors import (
     AmbiguousId,
     ArtifactNotFound,
     CorruptArtifact,
@@ -70,9 +70,9 @@ from artifacts.errors import (
     PathEscape,
     UnknownParent,
 )
-from artifacts.hashing import copy_and_hash, hash_file, hash_stream, manifest_id
-from artifacts.provenance import code_version
-from artifacts.records import (
+from capvector.artifacts.hashing import copy_and_hash, hash_file, hash_stream, manifest_id
+from capvector.artifacts.provenance import code_version
+from capvector.artifacts.records import (
     ArtifactRecord,
     FileEntry,
     IntegrityVerdict,
@@ -83,6 +83,7 @@ from artifacts.records import (
     safe_relpath,
     seal_sidecar,
 )
+from capvector.durable import fsync_dir, write_atomic
 
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
@@ -136,15 +137,6 @@ def _hash_local(path: str, expected: str, memo: bool = True) -> tuple[str, int]:
                 _verified.clear()
             _verified[key] = (digest, now)
     return digest, size
-
-
-def _fsync_dir(path: str) -> None:
-    """Make a rename durable: POSIX only persists a directory entry once the directory is fsynced."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def copy_file(src: str | os.PathLike[str] | BinaryIO, dst: str | os.PathLike[str]) -> None:
@@ -355,7 +347,7 @@ class ArtifactStore:
         self.root = os.path.abspath(root_path) if self.local else root_path.rstrip("/")
         self.cache_dir = Path(cache_dir) if cache_dir else home_mod.local_cache_dir(self.url) / "objects"
         self.fs.makedirs(self._p("objects"), exist_ok=True)
-        # Called with every record read from an unsealed sidecar (see artifacts.api: it raises
+        # Called with every record read from an unsealed sidecar (see capvector.artifacts.api: it raises
         # CorruptArtifact when the catalogue recorded that artifact sealed, i.e. the seal was stripped).
         self.unsealed_guard: Callable[[ArtifactRecord], None] | None = None
 
@@ -384,14 +376,7 @@ class ArtifactStore:
     def _write_small(self, dst: str, data: bytes) -> None:
         """Atomically replace a small file (sidecar, run record): temp name, fsync, rename."""
         if self.local:
-            os.makedirs(os.path.dirname(dst), exist_ok=True)
-            tmp = f"{dst}.tmp-{uuid.uuid4().hex}"
-            with open(tmp, "wb") as out:
-                out.write(data)
-                out.flush()
-                os.fsync(out.fileno())
-            os.replace(tmp, dst)
-            _fsync_dir(os.path.dirname(dst))
+            write_atomic(dst, data)
         else:
             # One PUT of a whole object is atomic on object stores; there is no rename to lean on.
             self.fs.pipe_file(dst, data)
@@ -445,7 +430,7 @@ class ArtifactStore:
                 if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
                     raise
                 shutil.rmtree(staged, ignore_errors=True)  # same content already committed
-            _fsync_dir(posixpath.dirname(final))
+            fsync_dir(posixpath.dirname(final))
         elif present:
             self._discard(staged)
         else:
@@ -759,7 +744,7 @@ class ArtifactStore:
             _expect(hashes or {}, entries)
             if self.local:
                 for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _ in members}:
-                    _fsync_dir(d)
+                    fsync_dir(d)
             return self._finish(
                 staged,
                 manifest_id(entries),
@@ -817,7 +802,7 @@ class ArtifactStore:
             if not entries:
                 raise ValueError(f"{src} contains no files; an empty artifact is almost certainly a bug")
             for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _, _ in entries}:
-                _fsync_dir(d)
+                fsync_dir(d)
             artifact_id = entries[0][2] if layout == "file" else manifest_id(entries)
             return self._finish(
                 staged,
@@ -942,7 +927,7 @@ class ArtifactStore:
             full = posixpath.join(obj, rel)
             shutil.rmtree(full) if os.path.isdir(full) and not os.path.islink(full) else os.unlink(full)
         for d in {posixpath.dirname(posixpath.join(obj, rel)) for rel in mtimes}:
-            _fsync_dir(d)
+            fsync_dir(d)
         self._refresh_mtimes(record, mtimes)
 
     def _swappable(self, record: ArtifactRecord, entries: list[tuple[str, int, str]]) -> bool:

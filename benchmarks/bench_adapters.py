@@ -25,10 +25,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from capvector_core.lora import LoraConfig, adapter_modules, apply_lora, trainable_parameter_count  # noqa: E402
-from capvector_core.lora_sp import LoraSPConfig, active_ranks, apply_lora_sp, lora_sp_loss  # noqa: E402
-from capvector_core.orthogonal import OrthogonalRegularizer  # noqa: E402
-from capvector_core.policies import L1ChunkConfig, L1ChunkPolicy  # noqa: E402
+from capvector.core.adapters.lora import LoraConfig, adapter_modules, apply_lora, trainable_parameter_count  # noqa: E402
+from capvector.core.adapters.lora_sp import LoraSPConfig, active_ranks, apply_lora_sp, lora_sp_loss  # noqa: E402
+from capvector.core.policies import L1ChunkConfig, L1ChunkPolicy  # noqa: E402
+from capvector.core.training.orthogonal import OrthogonalRegularizer  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 BATCH = 64

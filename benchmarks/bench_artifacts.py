@@ -27,13 +27,13 @@ import duckdb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from artifacts import catalogue  # noqa: E402
-from artifacts.api import ArtifactsAPI  # noqa: E402
-from artifacts.catalogue import Catalogue  # noqa: E402
-from artifacts.hashing import hash_file  # noqa: E402
-from artifacts.home import store_url  # noqa: E402
-from artifacts.readonly_sql import READ_ONLY_CONFIG  # noqa: E402
-from artifacts.store import ArtifactStore  # noqa: E402
+from capvector.artifacts import catalogue
+from capvector.artifacts.api import ArtifactsAPI  # noqa: E402
+from capvector.artifacts.catalogue import Catalogue  # noqa: E402
+from capvector.artifacts.hashing import hash_file  # noqa: E402
+from capvector.artifacts.home import store_url  # noqa: E402
+from capvector.artifacts.readonly_sql import READ_ONLY_CONFIG  # noqa: E402
+from capvector.artifacts.store import ArtifactStore  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -47,7 +47,7 @@ PROBE = """
 import json, sys, time
 root, home, op, start = sys.argv[1:5]
 sys.path.insert(0, root)
-from artifacts.api import ArtifactsAPI
+from capvector.artifacts.api import ArtifactsAPI
 t0, c0 = time.perf_counter(), time.process_time()
 api = ArtifactsAPI(home)
 t1 = time.perf_counter()

@@ -37,7 +37,7 @@ TARGET = 3.0
 BUILD = """
 import sys
 sys.path.insert(0, sys.argv[1])
-from artifacts.api import ArtifactsAPI
+from capvector.artifacts.api import ArtifactsAPI
 api = ArtifactsAPI(sys.argv[2])
 n = int(sys.argv[3])
 parent = None
@@ -93,13 +93,13 @@ def main() -> None:
     assert catalogue.exists(), catalogue
 
     console_script = Path(sys.executable).with_name("capvector")
-    new_cmd = [str(console_script)] if console_script.exists() else [sys.executable, "-m", "flows.cli"]
+    new_cmd = [str(console_script)] if console_script.exists() else [sys.executable, "-m", "capvector"]
     env = {k: v for k, v in os.environ.items() if k != "CAPVECTOR_HOME"}
     commands = {
         "new": (new_cmd + ["--home", str(new_home), "sql", "SELECT 1"], REPO),
         # `python -m` puts the working directory first on sys.path: the old packages win over the
         # editable install.
-        "old": ([sys.executable, "-m", "flows.cli", "--home", str(old_home), "sql", "SELECT 1"], old_root),
+        "old": ([sys.executable, "-m", "capvector", "--home", str(old_home), "sql", "SELECT 1"], old_root),
         "floor": ([sys.executable, "-c", FLOOR, str(catalogue)], REPO),
     }
     for cmd, cwd in commands.values():  # warm the page cache and the bytecode caches

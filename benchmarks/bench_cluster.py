@@ -97,7 +97,7 @@ class Cluster:
 def study(preset: str, home: Path, runner: list[str]) -> tuple[float, dict]:
     """Wall seconds of one `capvector study` and its JSON answer."""
     env = {**base_env(), "PREFECT_HOME": str(home.with_name(home.name + "-prefect"))}
-    cmd = [sys.executable, "-m", "flows.cli", "study", "--preset", preset, "--home", str(home), "--json"]
+    cmd = [sys.executable, "-m", "capvector", "study", "--preset", preset, "--home", str(home), "--json"]
     start = time.perf_counter()
     proc = subprocess.run([*cmd, *runner], cwd=REPO, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - start
@@ -117,8 +117,8 @@ def main() -> None:
         write_markdown(json.loads((RESULTS / "cluster.json").read_text()))
         return
     sys.path.insert(0, str(REPO))
-    from flows.study import study_steps
-    from flows.study_config import load_study
+    from capvector.flows.study.config import load_study
+    from capvector.flows.study.plan import study_steps
 
     steps = sum(study_steps(load_study(args.preset)))  # before the gate + after it (if it passes)
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="bench-cluster-"))

@@ -28,9 +28,9 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 from mujoco import _render  # noqa: E402
 
-from capvector_core.demos import expert_episode, library_versions  # noqa: E402
-from capvector_core.depth_targets import patch_xyz  # noqa: E402
-from capvector_core.envs import EnvConfig, MetaWorldEnv  # noqa: E402
+from capvector.core.simulation.demos import expert_episode, library_versions  # noqa: E402
+from capvector.core.simulation.depth_targets import patch_xyz  # noqa: E402
+from capvector.core.simulation.envs import EnvConfig, MetaWorldEnv  # noqa: E402
 
 TASKS = ["reach-v3", "push-v3", "drawer-close-v3"]
 SEEDS = [0, 1]

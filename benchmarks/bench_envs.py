@@ -23,9 +23,9 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from capvector_core.demos import DemoConfig, collect_demos, library_versions  # noqa: E402
-from capvector_core.envs import MetaWorldEnv, expert_policy  # noqa: E402
-from capvector_core.evaluation import EvalConfig, evaluate, expert_action_fn  # noqa: E402
+from capvector.core.evaluation.rollouts import EvalConfig, evaluate, expert_action_fn  # noqa: E402
+from capvector.core.simulation.demos import DemoConfig, collect_demos, library_versions  # noqa: E402
+from capvector.core.simulation.envs import MetaWorldEnv, expert_policy  # noqa: E402
 
 TASKS = [
     "reach-v3",

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from capvector_stats.paired_differences import SHARED_DRAW, paired_difference
+from capvector.stats.paired_differences import SHARED_DRAW, paired_difference
 
 RESULTS = Path(__file__).parent / "results"
 N_TASKS, GOALS_PER_TASK = 9, 10

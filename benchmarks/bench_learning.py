@@ -22,10 +22,10 @@ from pathlib import Path
 
 import torch
 
-from capvector_core.demos import DemoConfig, DemoDataset, collect_demos
-from capvector_core.evaluation import EvalConfig, evaluate
-from capvector_core.policy import build_policy, policy_types
-from capvector_core.trainer import TrainConfig, train
+from capvector.core.evaluation.rollouts import EvalConfig, evaluate
+from capvector.core.policies.base import build_policy, policy_types
+from capvector.core.simulation.demos import DemoConfig, DemoDataset, collect_demos
+from capvector.core.training.trainer import TrainConfig, train
 
 TASKS = [
     "reach-v3",

@@ -33,14 +33,14 @@ sys.path.insert(0, str(REPO))
 RESULTS = REPO / "benchmarks" / "results"
 
 EMPTY_FLOW = """
-import flows.pipeline
+import capvector.flows.recipe.flow
 from prefect import flow
 @flow
 def empty():
     return 1
 empty()
 """
-IMPORT_ONLY = "import flows.pipeline"
+IMPORT_ONLY = "import capvector.flows.recipe.flow"
 
 
 def _children() -> dict[int, list[int]]:
@@ -88,7 +88,7 @@ def timed(cmd: list[str], env: dict[str, str], cwd: Path = REPO) -> dict[str, fl
 def verification_bound_s(home: Path) -> tuple[float, int]:
     """Seconds to hash every stored file once, and their total bytes. A run verifies an artifact at
     most once per process that reads it (the CLI and two workers), so 3x this bounds its cost."""
-    from artifacts.hashing import hash_file
+    from capvector.artifacts.hashing import hash_file
 
     files = [p for p in (home / "store").rglob("*") if p.is_file() and not p.name.endswith(".json")]
     start = time.perf_counter()
@@ -128,7 +128,7 @@ def main() -> None:
     rows = []
     for preset in args.presets:
         env = environment(work, preset)
-        cmd = [sys.executable, "-m", "flows.cli", "run", "--preset", preset, "--json"]
+        cmd = [sys.executable, "-m", "capvector", "run", "--preset", preset, "--json"]
         if args.before:
             cold, warms, before = _with_before(args.before, work, preset, cmd, env, args.warm_reps)
         else:
@@ -172,7 +172,7 @@ def main() -> None:
     lines = [
         "# Pipeline wall time (bench_pipeline.py)",
         "",
-        f"{result['date']}; {result['machine']}. Each run is a fresh `python -m flows.cli run` process;",
+        f"{result['date']}; {result['machine']}. Each run is a fresh `python -m capvector run` process;",
         f"warm is the median of {args.warm_reps} runs. Servers and workers: distinct Prefect API server",
         "and pool-worker processes seen in the run's process tree.",
         "",

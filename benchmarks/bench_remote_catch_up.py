@@ -39,8 +39,8 @@ def main() -> None:
     import s3fs
     from moto.server import ThreadedMotoServer
 
-    from artifacts import catalogue as catalogue_mod
-    from artifacts.api import ArtifactsAPI
+    from capvector.artifacts import catalogue as catalogue_mod
+    from capvector.artifacts.api import ArtifactsAPI
 
     logging.getLogger("werkzeug").setLevel(logging.WARNING)
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)

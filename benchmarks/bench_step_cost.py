@@ -8,7 +8,7 @@ then reversed), so load drifts hit all alike. The orthogonal loss uses a random 
 rounds of (recipe seconds / SFT seconds), each round's runs adjacent in time.
 
 `--before REV` adds a fourth recipe, `capvector_before`: CapVector with the `OrthogonalRegularizer` of
-`capvector_core/orthogonal.py` as committed at git revision REV (read with `git show`, loaded as a
+`capvector_core/training/orthogonal.py` as committed at git revision REV (read with `git show`, loaded as a
 module; nothing in the working tree changes), so an optimisation's before and after come from the same
 run, alternating like the others.
 
@@ -29,9 +29,9 @@ from pathlib import Path
 
 import torch
 
-from capvector_core.orthogonal import OrthogonalRegularizer
-from capvector_core.policy import build_policy
-from capvector_core.trainer import AuxConfig, TrainConfig, train
+from capvector.core.policies.base import build_policy
+from capvector.core.training.orthogonal import OrthogonalRegularizer
+from capvector.core.training.trainer import AuxConfig, TrainConfig, train
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results"
@@ -44,7 +44,8 @@ def regularizer_at(rev: str, work: Path) -> type:
     """`OrthogonalRegularizer` as committed at git revision `rev` (a module loaded from `git show`)."""
     repo = ROOT.parent
     source = subprocess.run(
-        ["git", "show", f"{rev}:capvector_core/orthogonal.py"], cwd=repo, check=True, capture_output=True
+        ["git", "show", f"{rev}:capvector_core/training/orthogonal.py"], cwd=repo, check=True,
+        capture_output=True,
     ).stdout
     path = work / "orthogonal_before.py"
     path.write_bytes(source)

@@ -5,7 +5,7 @@ checkpoint (validation, held-out loss), submitted in that order, on 2 workers. S
 training, so the measurement is the scheduling alone: makespan from the first submit to the last
 result, inside one flow per runner (the flow's start-up excluded), runners alternating over rounds.
 With the stock pool the two waiting steps of the first value hold both input-resolving threads, so the
-second value's training waits for the first's to end (flows.step_pool).
+second value's training waits for the first's to end (capvector.flows.runtime.step_pool).
 
     python benchmarks/bench_step_pool.py [--values 4] [--train-s 3] [--read-s 0.3] [--rounds 3]
 """
@@ -18,13 +18,13 @@ import statistics
 import time
 from pathlib import Path
 
-import flows  # noqa: F401  (first: its __init__ sets Prefect's environment, no telemetry in the timings)
+import capvector.flows  # noqa: F401  (first: its __init__ sets Prefect's environment, no telemetry in the timings)
 
 # isort: split
 from prefect import flow, task
 from prefect.task_runners import ProcessPoolTaskRunner
 
-from flows.step_pool import StepPool
+from capvector.flows.runtime.step_pool import StepPool
 
 RESULTS = Path(__file__).resolve().parent / "results"
 RUNNERS = {"stock": ProcessPoolTaskRunner, "step_pool": StepPool}

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
-from capvector_core.policy import Policy, build_policy
-from capvector_core.trainer import TrainConfig, _param_groups, lr_at, train
+from capvector.core.policies.base import Policy, build_policy
+from capvector.core.training.trainer import TrainConfig, _param_groups, lr_at, train
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results"

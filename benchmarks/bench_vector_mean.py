@@ -40,7 +40,7 @@ PY = sys.executable
 
 STREAMED = """
 import sys
-from capvector_core.vector_ops import mean
+from capvector.core.vectors.vector_ops import mean
 mean(sys.argv[2:], sys.argv[1], method="{method}")
 """
 LOAD_ALL = """

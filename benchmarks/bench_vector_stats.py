@@ -34,7 +34,10 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 PY = sys.executable
 
-LIB = "from capvector_core.vector_ops import stats; import sys; rows = stats(sys.argv[1]); print(rows[0].l2)"
+LIB = (
+    "from capvector.core.vectors.vector_ops import stats; import sys; rows = stats(sys.argv[1]); "
+    "print(rows[0].l2)"
+)
 
 
 def write_vector(path: Path, mib: int) -> int:
@@ -116,7 +119,7 @@ def main() -> None:
             env = {**env, "CAPVECTOR_HOME": str(home), "PREFECT_HOME": str(work / f"prefect_{name}")}
             warm(vector)
             samples[f"{name}_cli"] = measure(
-                [PY, "-m", "flows.cli", "--home", str(home), "vector", "stats", str(vector), "--json"],
+                [PY, "-m", "capvector", "--home", str(home), "vector", "stats", str(vector), "--json"],
                 tree,
                 env,
             )

@@ -42,7 +42,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from capvector_core.safetensors_io import Checkpoint, ShardedWriter  # noqa: E402
+from capvector.core.vectors.safetensors_io import Checkpoint, ShardedWriter  # noqa: E402
 
 # --work moves it: other benchmarks wipe benchmarks/_work when done (and the mergekit venv with it)
 WORK = ROOT / "benchmarks" / "_work"
@@ -50,7 +50,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 ALPHA = 1.1
 PY = sys.executable
 CONSOLE = Path(PY).parent / "capvector"  # the console script a user runs
-CAPVECTOR = [str(CONSOLE)] if CONSOLE.exists() else [PY, "-m", "flows.cli"]
+CAPVECTOR = [str(CONSOLE)] if CONSOLE.exists() else [PY, "-m", "capvector"]
 Specs = dict[str, tuple[torch.dtype, tuple[int, ...]]]
 
 
@@ -154,12 +154,16 @@ def timed(cmd: list[str], env: dict[str, str] | None = None, cwd: Path = ROOT) -
     }
 
 
-LIB_EXTRACT = "from capvector_core.vector_ops import extract; extract({a!r}, {b!r}, {out!r}, overwrite=True)"
+LIB_EXTRACT = (
+    "from capvector.core.vectors.vector_ops import extract; "
+    "extract({a!r}, {b!r}, {out!r}, overwrite=True)"
+)
 LIB_MERGE = (
-    "from capvector_core.vector_ops import merge; merge({a!r}, [({b!r}, {alpha})], {out!r}, overwrite=True)"
+    "from capvector.core.vectors.vector_ops import merge; "
+    "merge({a!r}, [({b!r}, {alpha})], {out!r}, overwrite=True)"
 )
 FLOOR = """
-from capvector_core.safetensors_io import STORAGE, Checkpoint, ShardedWriter
+from capvector.core.vectors.safetensors_io import STORAGE, Checkpoint, ShardedWriter
 a, b = Checkpoint({a!r}), Checkpoint({b!r})
 specs = {{n: (s.dtype, s.shape) for n, s in a.specs.items()}}
 with ShardedWriter({out!r}, specs, overwrite=True) as w:
@@ -170,9 +174,9 @@ with ShardedWriter({out!r}, specs, overwrite=True) as w:
 # The CLI with stored inputs trusted instead of checked: they are read without hashing, and their
 # recorded digests stand in for the hashes (benchmark only: how much the verified read costs).
 UNVERIFIED = """
-from artifacts import store
-from capvector_core import vector_ops
-from flows.cli import main
+from capvector.artifacts import store
+from capvector.core.vectors import vector_ops
+from capvector.flows.cli.main import main
 
 known = {}
 stream_path = store.ArtifactStore.stream_path
@@ -237,7 +241,7 @@ def compare_outputs(ours: Path, theirs: Path, names: list[str]) -> dict:
 
 def artifact_ids(home: Path) -> dict[str, str]:
     """name -> id of what a home holds (the CLI's imports are named after the user's files)."""
-    from artifacts.store import ArtifactStore
+    from capvector.artifacts.store import ArtifactStore
 
     store = ArtifactStore(home / "store", cache_dir=home / "cache")
     return {r.name: r.id for r in store.iter_records()}
@@ -316,7 +320,7 @@ def run_case(
             if before is not None:  # the same two commands as of an older commit, in a home of their own
                 old = {"CAPVECTOR_HOME": str(Path(tmp) / "before-home"), "PREFECT_HOME": env["PREFECT_HOME"]}
                 g_old, m_old = (Path(tmp) / f"before-{n}{ext}" for n in ("gamma", "meta"))
-                cli = [PY, "-m", "flows.cli", "vector"]
+                cli = [PY, "-m", "capvector", "vector"]
                 sample("before_extract", [*cli, "extract", a, f, "-o", str(g_old)], old, before, (a, f))
                 merge = [*cli, "merge", p, "--vector", str(g_old), "--alpha", str(ALPHA), "-o", str(m_old)]
                 sample("before_merge", merge, old, before, (p, g_old))

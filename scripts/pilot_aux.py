@@ -20,12 +20,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capvector_core.demos import UNIT_SEEDS, DemoConfig, DemoDataset, collect_demos
-from capvector_core.held_out_loss import held_out_action_loss
-from capvector_core.obs_transforms import ObsTransformConfig
-from capvector_core.policy import build_policy, load_policy
-from capvector_core.trainer import AuxConfig, TrainConfig, train
-from flows.calibrate_config import load_calibration
+from capvector.core.policies.base import build_policy, load_policy
+from capvector.core.simulation.demos import UNIT_SEEDS, DemoConfig, DemoDataset, collect_demos
+from capvector.core.simulation.obs_transforms import ObsTransformConfig
+from capvector.core.training.held_out_loss import held_out_action_loss
+from capvector.core.training.trainer import AuxConfig, TrainConfig, train
+from capvector.flows.calibration.config import load_calibration
 
 PRETRAIN = load_calibration("calibrate-control").splits.pretrain
 """θ_pt's tasks: the calibration's (and the control studies')."""

@@ -31,11 +31,17 @@ from pathlib import Path
 
 import torch
 
-from capvector_core.demos import UNIT_SEEDS, VALIDATION_SEED_BASE, DemoConfig, DemoDataset, collect_demos
-from capvector_core.evaluation import EvalConfig, evaluate
-from capvector_core.held_out_loss import held_out_action_loss
-from capvector_core.policy import build_policy, load_policy
-from capvector_core.trainer import AuxConfig, TrainConfig, train
+from capvector.core.evaluation.rollouts import EvalConfig, evaluate
+from capvector.core.policies.base import build_policy, load_policy
+from capvector.core.simulation.demos import (
+    UNIT_SEEDS,
+    VALIDATION_SEED_BASE,
+    DemoConfig,
+    DemoDataset,
+    collect_demos,
+)
+from capvector.core.training.held_out_loss import held_out_action_loss
+from capvector.core.training.trainer import AuxConfig, TrainConfig, train
 
 PRETRAIN = [
     "reach-v3",

@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from capvector_stats.paired_differences import ENDPOINT, endpoint_rows, paired_difference, success_curve  # noqa: E402
+from capvector.stats.paired_differences import ENDPOINT, endpoint_rows, paired_difference, success_curve  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent.parent / "docs" / "studies"
 RUNS = {
@@ -248,7 +248,7 @@ evaluations still queued. It lost SFT from θ_ao for draw 0 seeds 1-3, the last 
 from the command's settings and log, because the script writes that file only at its end. A first
 attempt at run 8 on the same warm machine reused run 7's work folder, and the trainer resumed run 7's
 finished checkpoints as if they were run 8's. Its records were discarded unread. The trainer now
-refuses a checkpoint from other data or another start (see `capvector_core/trainer.py`), and the
+refuses a checkpoint from other data or another start (see `capvector_core/training/trainer.py`), and the
 script refuses a non-empty `--work`.
 
 None of the eight reaches the 10-point target with its interval above 0. The gate's other

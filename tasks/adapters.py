@@ -1,6 +1,7 @@
 """How a training step fine-tunes: full weights, LoRA or LoRA-SP, as entries of one registry.
 
-Each entry knows what its form does at every point of a training step, so `tasks.training` asks the
+Each entry knows what its form does at every point of a training step, so `capvector.tasks.steps.training`
+asks the
 entry instead of branching on its name: its config section, how it is applied to the model, the extra
 losses it trains with, which orthogonal-loss mode it takes, and how it ends (the adapter saved as its own
 artifact, then merged so the checkpoint holds dense weights). A new form is one class here (peft's
@@ -16,7 +17,7 @@ from typing import Any, ClassVar
 from pydantic import BaseModel
 from torch import nn
 
-from capvector_core import lora, lora_sp
+from capvector.core.adapters import lora, lora_sp
 
 
 class Adapter:
@@ -69,7 +70,7 @@ class LoraAdapter(Adapter):
 
 class LoraSPAdapter(LoraAdapter):
     """Rank-adaptive LoRA-SP: trains with its own loss; its dense merge is calibrated on training
-    batches (an approximation: evaluation runs the adapter itself, tasks.trained_policy)."""
+    batches (an approximation: evaluation runs the adapter itself, capvector.tasks.trained_policy)."""
 
     name = "lora_sp"
     section = "lora_sp"

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from pydantic import BaseModel
 
-from capvector_core import lora_sp
-from capvector_core.lora import read_adapter
-from capvector_core.policy import Policy, load_policy, read_policy_config
-from tasks.workspace import Workspace
+from capvector.core.adapters import lora_sp
+from capvector.core.adapters.lora import read_adapter
+from capvector.core.policies.base import Policy, load_policy, read_policy_config
+from capvector.tasks.runtime.workspace import Workspace
 
 
 class PolicyForm(BaseModel):
@@ -63,7 +63,7 @@ def resolve_checkpoints(workspace: Workspace, refs: list[str]) -> list[str]:
     how to register one, before any flow starts."""
     from pathlib import Path
 
-    from tasks.vector_commands import import_path
+    from capvector.tasks.vector_commands import import_path
 
     ids = []
     for ref in refs:

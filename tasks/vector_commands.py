@@ -33,13 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from artifacts.hashing import hash_file, manifest_id
-from artifacts.records import ArtifactRecord
-from artifacts.store import copy_file, copy_in, flush_soon, fsync_file
-from capvector_core import vector_ops
-from capvector_core.safetensors_io import Checkpoint, CheckpointError, parse_size
-from capvector_core.vector_ops import VectorStat
-from tasks.workspace import Workspace, library_versions, provenance
+from capvector.artifacts.hashing import hash_file, manifest_id
+from capvector.artifacts.records import ArtifactRecord
+from capvector.artifacts.store import copy_file, copy_in, flush_soon, fsync_file
+from capvector.core.vectors import vector_ops
+from capvector.core.vectors.safetensors_io import Checkpoint, CheckpointError, parse_size
+from capvector.core.vectors.vector_ops import VectorStat
+from capvector.tasks.runtime.workspace import Workspace, library_versions, provenance
 
 
 def _provenance() -> dict[str, Any]:
@@ -518,8 +518,8 @@ def stats_cli(
     """The vector's statistics, their `vector_stats` artifact, and whether it was recorded before: the
     same vector, base and reference give the same document, hence the same artifact (content
     addressing), so a repeated call reuses it and registers nothing new."""
-    from artifacts.records import utcnow
-    from tasks.vectors import stat_rows  # imports Prefect: only this command needs it
+    from capvector.artifacts.records import utcnow
+    from capvector.tasks.steps.vectors import stat_rows  # imports Prefect: only this command needs it
 
     started = utcnow()
     with workspace.api.store.staging() as stage:

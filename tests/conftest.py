@@ -54,7 +54,7 @@ def run_cli(
 ) -> subprocess.CompletedProcess:
     """The real console entry point in a subprocess, as a user runs it (`run_in_session`)."""
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1", **(env or {})}
-    result = run_in_session([sys.executable, "-m", "flows.cli", *args], env, timeout)
+    result = run_in_session([sys.executable, "-m", "capvector", *args], env, timeout)
     if check and result.returncode != 0:
         raise AssertionError(
             f"capvector {' '.join(args)} failed ({result.returncode}):\n{result.stderr[-3000:]}"

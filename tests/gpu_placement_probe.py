@@ -15,11 +15,11 @@ import time
 from typing import Any
 
 if __name__ == "__main__":
-    from flows.run_server import start_run_server
+    from capvector.flows.runtime.prefect_server import start_run_server
 
     start_run_server()  # the run's Prefect API server, before Prefect is imported
 
-from tasks.prefect_task import pipeline_task  # noqa: E402
+from capvector.tasks.runtime.prefect_task import pipeline_task  # noqa: E402
 
 
 @pipeline_task("placement probe", content_cached=False)
@@ -31,7 +31,7 @@ def probe_step(home: str, step: str, inputs: dict[str, str], config: dict[str, A
 
 
 def probe(n: int) -> dict[str, str]:
-    from flows.steps import StepRunner, resolve
+    from capvector.flows.runtime.step_submission import StepRunner, resolve
 
     steps = StepRunner("unused", 2 * n, "placement probe")
     futures = {}
@@ -45,9 +45,9 @@ def probe(n: int) -> dict[str, str]:
 def main(address: str, n: int) -> None:
     from prefect import flow
 
-    from flows.run_server import wait_for_api
-    from flows.runners import RunnerConfig, build_runner
-    from flows.runs import run_tags
+    from capvector.flows.runtime.prefect_server import wait_for_api
+    from capvector.flows.runtime.run_records import run_tags
+    from capvector.flows.runtime.task_runners import RunnerConfig, build_runner
 
     wait_for_api()
 

@@ -6,8 +6,8 @@ import sys
 import time
 from pathlib import Path
 
-from tasks.caching import cached_step
-from tasks.workspace import Workspace
+from capvector.tasks.runtime.caching import cached_step
+from capvector.tasks.runtime.workspace import Workspace
 
 
 def produce_slowly(workspace: Workspace, log: Path, seconds: float):

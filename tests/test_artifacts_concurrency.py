@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from artifacts.api import ArtifactsAPI
-from artifacts.catalogue import Catalogue
-from artifacts.errors import CatalogueBusy
-from artifacts.records import RunRecord
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.catalogue import Catalogue
+from capvector.artifacts.errors import CatalogueBusy
+from capvector.artifacts.records import RunRecord
 
 REPO = Path(__file__).resolve().parent.parent
 N_EACH = 30
@@ -85,7 +85,7 @@ def test_lock_held_briefly_is_waited_out_and_too_long_is_reported(tmp_path):
 
 SLOW_WRITER = textwrap.dedent("""
     import sys
-    from artifacts.api import ArtifactsAPI
+    from capvector.artifacts.api import ArtifactsAPI
     api = ArtifactsAPI(sys.argv[1])
     print("ready", flush=True)
     api.register_file(sys.argv[2], "checkpoint", "never finished", filename="model.safetensors")

@@ -3,9 +3,14 @@
 import pytest
 import torch
 
-from capvector_core.aux_objectives import build_objective, get_objective, known_objectives, register_objective
-from capvector_core.policy import build_policy
-from capvector_core.tokenizer import encode_batch
+from capvector.core.policies.base import build_policy
+from capvector.core.policies.tokenizer import encode_batch
+from capvector.core.training.aux_objectives import (
+    build_objective,
+    get_objective,
+    known_objectives,
+    register_objective,
+)
 
 TINY = dict(d_model=32, n_layers=4, n_heads=4, chunk_size=3, vocab_size=64, max_instruction_tokens=6)
 

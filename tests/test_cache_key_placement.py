@@ -1,7 +1,7 @@
 """Where a step runs is not part of its cache key, and is in its record (issue 23, item 4).
 
 The fields that only say where or how fast a step runs are marked `ExecutionOnly` on their models
-(capvector_core.execution) and left out of the content key: the same training run asked for on
+(capvector.core.training.execution) and left out of the content key: the same training run asked for on
 `cuda:0` or with 8 threads is a hit for one trained on a CPU with 1. The checkpoint's record says what
 the run actually used (`config.execution`: the resolved device, never `auto`, and the thread count).
 """
@@ -11,15 +11,15 @@ import json
 import torch
 from typer.testing import CliRunner
 
-from capvector_core.demos import DemoConfig
-from capvector_core.device import device_label, resolve_device
-from capvector_core.evaluation import EvalConfig
-from capvector_core.execution import execution_only_fields, result_config
-from capvector_core.trainer import TrainConfig
-from flows.cli import app
-from tasks.caching import content_key, step_outcomes
-from tasks.training import TrainStepConfig, run_train
-from tasks.workspace import Workspace
+from capvector.core.evaluation.rollouts import EvalConfig
+from capvector.core.simulation.demos import DemoConfig
+from capvector.core.training.device import device_label, resolve_device
+from capvector.core.training.execution import execution_only_fields, result_config
+from capvector.core.training.trainer import TrainConfig
+from capvector.flows.cli.main import app
+from capvector.tasks.runtime.caching import content_key, step_outcomes
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.training import TrainStepConfig, run_train
 from tests.test_trainer import TINY, make_dataset, quick
 
 INPUTS = {"data": "a" * 64}
@@ -27,11 +27,12 @@ INPUTS = {"data": "a" * 64}
 
 def train_key(**train) -> str:
     step = TrainStepConfig(policy={"type": "l1_chunk", **TINY}, train=quick(**train))
-    return content_key("train", INPUTS, step, "tasks.training")
+    return content_key("train", INPUTS, step, "capvector.tasks.steps.training")
 
 
 def test_the_execution_only_fields_are_these():
-    """The docstring of capvector_core.execution lists these, with why each cannot change a result."""
+    """The docstring of capvector.core.training.execution lists these, with why each cannot change a
+    result."""
     assert set(execution_only_fields(TrainConfig)) == {
         "device",
         "num_threads",
@@ -65,14 +66,14 @@ def test_device_and_thread_count_leave_the_key_a_learning_rate_does_not():
 def test_demo_workers_and_evaluation_batch_size_leave_the_key():
     def demo_key(**kw):
         config = DemoConfig(tasks=["reach-v3"], episodes_per_task=3, **kw)
-        return content_key("collect_demos", {}, config, "tasks.data")
+        return content_key("collect_demos", {}, config, "capvector.tasks.steps.data")
 
     assert demo_key(workers=1) == demo_key(workers=4)
     assert demo_key(workers=1) != demo_key(workers=1, horizon=100)
 
     def eval_key(**kw):
         config = EvalConfig(tasks=["reach-v3"], episodes_per_task=3, **kw)
-        return content_key("evaluate", {"checkpoint": "c" * 64}, config, "tasks.evaluation")
+        return content_key("evaluate", {"checkpoint": "c" * 64}, config, "capvector.tasks.steps.evaluation")
 
     assert eval_key(batch_size=1) == eval_key(batch_size=64)
     assert eval_key(batch_size=1) != eval_key(batch_size=1, record_video=1)  # it registers videos

@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
-from tasks.caching import cached_step, lookup
-from tasks.training import run_train
-from tasks.workspace import Workspace
+from capvector.flows.cli.main import app
+from capvector.tasks.runtime.caching import cached_step, lookup
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.training import run_train
 from tests.test_trainer import TINY, make_dataset, quick
 
 REPO = Path(__file__).resolve().parents[1]

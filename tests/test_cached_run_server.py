@@ -26,7 +26,7 @@ def test_a_fully_cached_run_starts_no_prefect_server(smoke_home, tmp_path):
     out = tmp_path / "stdout"
     with out.open("wb") as handle:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke", "--json"],
+            [sys.executable, "-m", "capvector", "run", "--preset", "smoke", "--json"],
             cwd=REPO, env=env, stdout=handle, stderr=subprocess.DEVNULL, start_new_session=True,
         )  # fmt: skip
     servers: set[int] = set()

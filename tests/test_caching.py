@@ -8,27 +8,32 @@ from pathlib import Path
 
 from conftest import run_cli
 
-from tasks.caching import cached_step, content_key, lookup
-from tasks.prefect_task import pipeline_task
-from tasks.step_code import module_closure, step_code
-from tasks.workspace import Workspace
+from capvector.tasks.runtime.caching import cached_step, content_key, lookup
+from capvector.tasks.runtime.prefect_task import pipeline_task
+from capvector.tasks.runtime.step_code import module_closure, step_code
+from capvector.tasks.runtime.workspace import Workspace
 
 
 def test_step_code_covers_the_import_closure_only():
-    closure = module_closure("tasks.data")
-    assert {"capvector_core.demos", "capvector_core.envs", "tasks.caching"} <= set(closure)
-    assert "capvector_core.trainer" not in closure and "flows.cli" not in closure
-    assert "capvector_core.trainer" in module_closure("tasks.training")
-    assert step_code("tasks.data") != step_code("tasks.training")
+    closure = module_closure("capvector.tasks.steps.data")
+    used = {
+        "capvector.core.simulation.demos",
+        "capvector.core.simulation.envs",
+        "capvector.tasks.runtime.caching",
+    }
+    assert used <= set(closure)
+    assert "capvector.core.training.trainer" not in closure and "capvector.flows.cli.main" not in closure
+    assert "capvector.core.training.trainer" in module_closure("capvector.tasks.steps.training")
+    assert step_code("capvector.tasks.steps.data") != step_code("capvector.tasks.steps.training")
 
 
 def test_content_key_depends_on_inputs_config_kind_and_module():
-    base = content_key("train", {"data": "a" * 64}, {"steps": 1}, "tasks.training")
-    assert base == content_key("train", {"data": "a" * 64}, {"steps": 1}, "tasks.training")
-    assert base != content_key("train", {"data": "b" * 64}, {"steps": 1}, "tasks.training")
-    assert base != content_key("train", {"data": "a" * 64}, {"steps": 2}, "tasks.training")
-    assert base != content_key("merge", {"data": "a" * 64}, {"steps": 1}, "tasks.training")
-    assert base != content_key("train", {"data": "a" * 64}, {"steps": 1}, "tasks.data")
+    base = content_key("train", {"data": "a" * 64}, {"steps": 1}, "capvector.tasks.steps.training")
+    assert base == content_key("train", {"data": "a" * 64}, {"steps": 1}, "capvector.tasks.steps.training")
+    assert base != content_key("train", {"data": "b" * 64}, {"steps": 1}, "capvector.tasks.steps.training")
+    assert base != content_key("train", {"data": "a" * 64}, {"steps": 2}, "capvector.tasks.steps.training")
+    assert base != content_key("merge", {"data": "a" * 64}, {"steps": 1}, "capvector.tasks.steps.training")
+    assert base != content_key("train", {"data": "a" * 64}, {"steps": 1}, "capvector.tasks.steps.data")
 
 
 def _producer(workspace, calls, tmp_path):
@@ -96,7 +101,7 @@ def test_a_planted_pickle_result_is_never_unpickled_by_a_cached_run(smoke_home, 
     content cache, and Prefect's result store is not read at all."""
     from prefect._internal.result_records import ResultRecord
 
-    from artifacts.api import ArtifactsAPI
+    from capvector.artifacts.api import ArtifactsAPI
 
     home, ids = smoke_home
     storage = Path(os.environ["PREFECT_HOME"]) / "storage"  # the session's (tests/conftest.py)

@@ -15,15 +15,16 @@ import pytest
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
-from artifacts.api import ArtifactsAPI
-from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
-from flows.calibrate import calibration_steps, plan_calibration
-from flows.calibrate_config import load_calibration
-from flows.calibrate_flow import calibrate_flow
-from flows.config import load_config
-from flows.steps import CacheProbe
-from flows.study_config import load_study
-from tasks.calibration import (
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.core.simulation.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
+from capvector.flows.calibration.config import load_calibration
+from capvector.flows.calibration.flow import calibrate_flow
+from capvector.flows.calibration.plan import calibration_steps, plan_calibration
+from capvector.flows.recipe.config import load_config
+from capvector.flows.runtime.step_submission import CacheProbe
+from capvector.flows.study.config import load_study
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.calibration import (
     TaskRule,
     apply_rule,
     calibration_markdown,
@@ -31,7 +32,6 @@ from tasks.calibration import (
     ladder,
     split_tasks,
 )
-from tasks.workspace import Workspace
 
 RULE = TaskRule(budgets=[50, 100], low=15, high=85, spread=40, min_tasks_per_split=2)
 
@@ -241,7 +241,7 @@ def test_a_tiny_calibration_records_every_curve_and_verdict_and_is_then_answered
         [
             sys.executable,
             "-m",
-            "flows.cli",
+            "capvector.flows.cli.main",
             "--home",
             str(home),
             "calibrate",

@@ -6,12 +6,12 @@ import shutil
 import duckdb
 import pytest
 
-from artifacts.api import ArtifactsAPI
-from artifacts.catalogue import Catalogue
-from artifacts.errors import MixedFingerprints, ReadOnlyViolation, SchemaTooNew, UnknownParent
-from artifacts.records import RunRecord
-from artifacts.schema import MIGRATIONS
-from flows.lineage_views import as_mermaid, as_tree
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.catalogue import Catalogue
+from capvector.artifacts.errors import MixedFingerprints, ReadOnlyViolation, SchemaTooNew, UnknownParent
+from capvector.artifacts.records import RunRecord
+from capvector.artifacts.schema import MIGRATIONS
+from capvector.flows.views.lineage import as_mermaid, as_tree
 
 TABLES = ["artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs"]
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import duckdb
 import pytest
 
-from artifacts import catalogue as catalogue_mod
-from artifacts.api import ArtifactsAPI
-from artifacts.catalogue import Catalogue, LineageNode
+from capvector.artifacts import catalogue as catalogue_mod
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.catalogue import Catalogue, LineageNode
 
 
 def reference(edges, start, ancestors, max_depth=None):
@@ -157,7 +157,7 @@ def test_a_lineage_command_exits_without_duckdb_leak_report(dag):
     """The process-wide database is closed at exit: DuckDB's bindings report nothing as leaked."""
     cat, ids, _, _ = dag
     code = (
-        "import sys; from artifacts.catalogue import Catalogue; "
+        "import sys; from capvector.artifacts.catalogue import Catalogue; "
         "print(len(Catalogue(sys.argv[1]).ancestors(sys.argv[2])))"
     )
     proc = subprocess.run(

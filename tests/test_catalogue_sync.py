@@ -19,11 +19,11 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from artifacts import catalogue as catalogue_mod
-from artifacts.api import ArtifactsAPI
-from artifacts.records import RunRecord
-from artifacts.store import ArtifactStore
-from flows.cli import app
+from capvector.artifacts import catalogue as catalogue_mod
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.records import RunRecord
+from capvector.artifacts.store import ArtifactStore
+from capvector.flows.cli.main import app
 
 REPO = Path(__file__).resolve().parent.parent
 TABLES = ["artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs"]
@@ -259,7 +259,7 @@ def test_catalogue_commands(tmp_path):
 
 
 def test_schema_error_names_the_real_command(tmp_path):
-    from artifacts.errors import SchemaTooNew
+    from capvector.artifacts.errors import SchemaTooNew
 
     message = str(SchemaTooNew(9, 2, "x.duckdb"))
     assert "capvector catalogue rebuild" in message
@@ -270,7 +270,7 @@ def test_schema_error_names_the_real_command(tmp_path):
 # ---------------------------------------------------------------------------- item 6: readers vs writers
 LONG_QUERY = textwrap.dedent("""
     import sys
-    from artifacts.api import ArtifactsAPI
+    from capvector.artifacts.api import ArtifactsAPI
     api = ArtifactsAPI(sys.argv[1])
     print("querying", flush=True)
     api.query("SELECT count(*) FROM range(100000000000) t(x) WHERE x % 7 = 3")

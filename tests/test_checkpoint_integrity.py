@@ -13,9 +13,9 @@ from conftest import run_cli
 from test_safetensors_io import MALFORMED, _tensors, write_raw
 from typer.testing import CliRunner
 
-from artifacts.api import ArtifactsAPI
-from capvector_core.safetensors_io import INDEX_NAME, Checkpoint, CheckpointError, write_checkpoint
-from flows.cli import app
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.core.vectors.safetensors_io import INDEX_NAME, Checkpoint, CheckpointError, write_checkpoint
+from capvector.flows.cli.main import app
 
 
 def _artifact_count(home) -> int:

@@ -21,10 +21,10 @@ from conftest import REPO, run_cli
 from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
-from artifacts.api import ArtifactsAPI
-from artifacts.scores import read_scores
-from capvector_core.safetensors_io import Checkpoint
-from flows.cli import app
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.scores import read_scores
+from capvector.core.vectors.safetensors_io import Checkpoint
+from capvector.flows.cli.main import app
 
 SHAPES = {"blocks.0.attn.weight": (6, 4), "blocks.0.attn.bias": (6,), "blocks.1.mlp.weight": (3, 6)}
 
@@ -385,7 +385,7 @@ def _children_of(pid: int) -> dict[int, str]:
 def test_sigterm_stops_the_embedded_prefect_server_and_workers(tmp_path):
     env = {**os.environ, "CAPVECTOR_HOME": str(tmp_path / "home"), "CAPVECTOR_QUIET": "1"}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke"],
+        [sys.executable, "-m", "capvector", "run", "--preset", "smoke"],
         cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
     )  # fmt: skip
     try:
@@ -412,7 +412,7 @@ def test_sigterm_stops_the_embedded_prefect_server_and_workers(tmp_path):
 # exception (as DuckDB does: "Query interrupted"): the signal must still stop the helpers, exit 143.
 SWALLOWED_SIGTERM = """
 import os, signal, subprocess, sys
-import flows.cli as cli
+import capvector.flows.cli.main as cli
 
 def app(standalone_mode):
     helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
@@ -448,9 +448,9 @@ def test_sigterm_swallowed_by_a_library_still_stops_helpers_and_exits_143():
 @pytest.mark.parametrize("policy_type", ["l1_chunk", "flow"])
 def test_a_policy_merged_on_the_cli_is_a_loadable_policy(tmp_path, policy_type):
     """`vector merge` keeps the base's policy config: its output evaluates like any checkpoint."""
-    from capvector_core.policy import build_policy, save_policy
-    from tasks.trained_policy import load_trained_policy
-    from tasks.workspace import Workspace
+    from capvector.core.policies.base import build_policy, save_policy
+    from capvector.tasks.runtime.workspace import Workspace
+    from capvector.tasks.trained_policy import load_trained_policy
 
     home = tmp_path / "home"
     spec = {"type": policy_type, "d_model": 16, "n_layers": 1, "n_heads": 2, "chunk_size": 2}
@@ -476,8 +476,9 @@ def test_a_policy_merged_on_the_cli_is_a_loadable_policy(tmp_path, policy_type):
 
 
 def _main_with_command(monkeypatch, failing) -> SystemExit:
-    """Run `flows.cli.main` on a command registered just for the test; the SystemExit it ends with."""
-    from flows import cli
+    """Run `capvector.flows.cli.main.main` on a command registered just for the test; the SystemExit it ends
+    with."""
+    from capvector.flows.cli import main as cli
 
     cli.app.command("failing-for-test")(failing)
     try:
@@ -539,7 +540,7 @@ HEAVY = ("torch", "pandas", "prefect", "metaworld")
 LIGHT_PROBE = """
 import json, sys
 HEAVY = json.loads(sys.argv[2])
-from flows.cli import main
+from capvector.flows.cli.main import main
 imported = {}
 for args in json.loads(sys.argv[1]):
     sys.argv = ["capvector", *args]
@@ -592,7 +593,7 @@ def test_read_only_commands_import_neither_torch_pandas_prefect_nor_metaworld(tm
 
 
 def test_sql_prints_whole_values_aligned_without_pandas(tmp_path):
-    from flows.cli_common import text_table
+    from capvector.flows.cli.common import text_table
 
     assert text_table(["a", "name"], [(1, "x"), (10, None)]).splitlines() == [
         " a  name",

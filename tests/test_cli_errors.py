@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from conftest import run_cli
 
-from artifacts.api import ArtifactsAPI
+from capvector.artifacts.api import ArtifactsAPI
 
 
 def _lines(text: str) -> list[str]:
@@ -171,8 +171,8 @@ def test_switching_a_presets_flow_policy_back_to_l1_chunk_warns_in_one_line(tmp_
 @pytest.mark.parametrize("command", ["run", "study", "calibrate", "sweep"])
 def test_a_preset_given_by_its_absolute_path_names_the_log_file_by_its_stem(tmp_path, monkeypatch, command):
     """`--preset /abs/path/p.yaml` failed every flow command: the log file's name kept the slashes."""
-    from flows import flow_commands
-    from tasks.progress import LOG_FILE_ENV
+    from capvector.flows.cli import experiment_commands as flow_commands
+    from capvector.tasks.runtime.progress import LOG_FILE_ENV
 
     monkeypatch.setenv(LOG_FILE_ENV, "")  # unset for _start_log, and restored after (delenv of an unset
     # variable records nothing, so the path _start_log sets would leak into every later test's CLI)

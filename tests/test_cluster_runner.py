@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 from conftest import REPO, run_cli
 
-from flows.recipe import pipeline_steps
-from flows.runners import RunnerConfig, runner_config
+from capvector.flows.recipe.plan import pipeline_steps
+from capvector.flows.runtime.task_runners import RunnerConfig, runner_config
 
 TESTS = REPO / "tests"
 
@@ -154,7 +154,7 @@ def test_smoke_run_with_an_s3_home_on_the_cluster(cluster, smoke_home, tmp_path)
     ids = json.loads(proc.stdout)
     assert ids == smoke_home[1]
 
-    from flows.config import load_config
+    from capvector.flows.recipe.config import load_config
 
     after = _executed(address)
     ran = {worker: after[worker] - before.get(worker, 0) for worker in after}

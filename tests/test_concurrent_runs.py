@@ -4,7 +4,7 @@ Once, two `capvector study --preset study-smoke` on one fresh home shared a trai
 (`Workspace.run_dir`, one per content key), and one of them registered θ_pt, a 30-step run, with the
 loss-curve steps [10, 20] inside its sealed record; `verify` stayed clean. Every step that writes into
 a work folder now computes and registers under `cached_step`'s flock per content key, and asks the
-cache again once it holds it (tasks.caching.step_lock), so the second run waits and reuses.
+cache again once it holds it (capvector.tasks.runtime.caching.step_lock), so the second run waits and reuses.
 
 Here two `capvector run --preset smoke --json` start together on one fresh home while a third, lone
 run works on a second fresh home. The pipeline runs every kind of step that writes into the home's
@@ -39,7 +39,7 @@ from typing import Any
 
 from conftest import REPO, run_cli
 
-from artifacts.api import ArtifactsAPI
+from capvector.artifacts.api import ArtifactsAPI
 
 # Fields of a record that say when, where, how fast or by which run, not what: left out of the comparison.
 PROVENANCE = {"created_at", "flow_run_id", "task_run_id", "code_version", "metadata_sha256"}
@@ -51,7 +51,7 @@ def _start(home: Path, out: Any, err: Any) -> subprocess.Popen:
     """`capvector run --preset smoke --json` on `home`, in a session of its own (see conftest.run_cli)."""
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
     return subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke", "--json"],
+        [sys.executable, "-m", "capvector", "run", "--preset", "smoke", "--json"],
         cwd=REPO,
         env=env,
         stdout=out,
@@ -126,7 +126,8 @@ def _trainings(home: Path) -> Counter:
 def test_two_runs_on_one_home_at_once_record_what_a_lone_run_records(tmp_path, monkeypatch):
     shared, lone = tmp_path / "shared", tmp_path / "lone"
     # A Prefect home no server has initialised: the three run servers' first starts must not race on
-    # its migrations and block types (flows.run_server holds PREFECT_HOME's boot lock until ready).
+    # its migrations and block types (capvector.flows.runtime.prefect_server holds PREFECT_HOME's boot lock
+    # until ready).
     monkeypatch.setenv("PREFECT_HOME", str(tmp_path / "prefect"))
     results = _run_together([shared, shared, lone])
     for code, _, err in results:

@@ -5,8 +5,8 @@ import re
 import pytest
 from pydantic import ValidationError
 
-from flows.config import ARMS, PipelineConfig, load_config
-from flows.overrides import ConfigKeyError
+from capvector.flows.recipe.config import ARMS, PipelineConfig, load_config
+from capvector.flows.recipe.overrides import ConfigKeyError
 
 
 @pytest.mark.parametrize("preset", ["smoke", "quick", "hard", "paper", "paper-cpu"])
@@ -107,7 +107,7 @@ def test_policy_type_override_checks_keys_against_that_type():
 
 def test_switching_policy_type_drops_settings_the_new_type_lacks(monkeypatch):
     monkeypatch.syspath_prepend(str(__import__("conftest").REPO / "tests" / "policy_plugin"))
-    monkeypatch.setattr("capvector_core.policy._entry_points_loaded", False)
+    monkeypatch.setattr("capvector.core.policies.base._entry_points_loaded", False)
     with pytest.warns(UserWarning, match=r"policy.type=mlp: d_model, n_heads do not apply"):
         config = load_config("smoke", ["policy.type=mlp", "policy.hidden=16"])
     assert config.policy.type == "mlp" and config.policy.hidden == 16 and config.policy.n_layers == 2
@@ -142,11 +142,11 @@ def test_nan_and_inf_are_refused_at_validation_naming_the_field(override, field)
 
 
 def test_step_configs_refuse_nan_and_inf():
-    from capvector_core.lora import LoraConfig
-    from capvector_core.lora_sp import LoraSPConfig
-    from capvector_core.trainer import AuxConfig, TrainConfig
-    from tasks.training import OrthogonalSettings
-    from tasks.vectors import MergeConfig
+    from capvector.core.adapters.lora import LoraConfig
+    from capvector.core.adapters.lora_sp import LoraSPConfig
+    from capvector.core.training.trainer import AuxConfig, TrainConfig
+    from capvector.tasks.steps.training import OrthogonalSettings
+    from capvector.tasks.steps.vectors import MergeConfig
 
     nan, inf = float("nan"), float("inf")
     cases = [
@@ -180,8 +180,8 @@ def test_policy_configs_refuse_nan_and_inf_naming_the_field(overrides, field):
 
 
 def test_policy_configs_refuse_nan_and_inf_directly():
-    from capvector_core.policies.flow import FlowConfig
-    from capvector_core.policies.l1_chunk import L1ChunkConfig
+    from capvector.core.policies.flow_matching import FlowConfig
+    from capvector.core.policies.l1_chunk import L1ChunkConfig
 
     for model, data, field in [
         (FlowConfig, {"time_beta": (float("nan"), 1.0)}, "time_beta.0"),

@@ -1,6 +1,7 @@
 """Every field a preset user edits is documented (issue 22, item 4), and `capvector config show` prints it.
 
-`flows.config_command.describe` yields each leaf field of a resolved preset with the description its
+`capvector.flows.cli.config_commands.describe` yields each leaf field of a resolved preset with the
+description its
 model carries (`Field(description=...)` or its class's `Args:` line); a field added without one fails
 here, naming the preset and the dotted path a user would `--set`.
 """
@@ -11,18 +12,18 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from flows.calibrate_config import load_calibration
-from flows.cli import app
-from flows.config import PRESET_DIR, load_config
-from flows.config_command import describe
-from flows.study_config import load_study
+from capvector.flows.calibration.config import load_calibration
+from capvector.flows.cli.config_commands import describe
+from capvector.flows.cli.main import app
+from capvector.flows.recipe.config import PRESET_DIR, load_config
+from capvector.flows.study.config import load_study
 
 PRESETS = sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
 
 
 def _load(preset: str, overrides: list[str] | None = None):
     data = yaml.safe_load((PRESET_DIR / f"{preset}.yaml").read_text()) or {}
-    if "rule" in data:  # a calibration (flows.calibrate_config)
+    if "rule" in data:  # a calibration (capvector.flows.calibration.config)
         return load_calibration(preset, overrides)
     return load_study(preset, overrides) if "study" in data else load_config(preset, overrides)
 

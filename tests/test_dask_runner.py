@@ -5,7 +5,7 @@ import json
 
 from conftest import run_cli
 
-from artifacts.api import ArtifactsAPI
+from capvector.artifacts.api import ArtifactsAPI
 
 TASK = "button-press-topdown-v3"
 

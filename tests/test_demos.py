@@ -7,7 +7,7 @@ import torch
 from pydantic import ValidationError
 from safetensors.torch import load_file, save_file
 
-from capvector_core.demos import (
+from capvector.core.simulation.demos import (
     DATA_FILE,
     META_FILE,
     SUCCESS_TAIL,

@@ -11,12 +11,12 @@ import pytest
 import torch
 from pydantic import ValidationError
 
-from capvector_core.aux_objectives import build_objective, known_objectives
-from capvector_core.demos import DemoConfig, DemoDataset, collect_demos
-from capvector_core.depth_targets import PinholeCamera, patch_medians, patch_xyz
-from capvector_core.envs import EnvConfig, MetaWorldEnv
-from capvector_core.policy import build_policy
-from capvector_core.trainer import AuxConfig, TrainConfig, train
+from capvector.core.policies.base import build_policy
+from capvector.core.simulation.demos import DemoConfig, DemoDataset, collect_demos
+from capvector.core.simulation.depth_targets import PinholeCamera, patch_medians, patch_xyz
+from capvector.core.simulation.envs import EnvConfig, MetaWorldEnv
+from capvector.core.training.aux_objectives import build_objective, known_objectives
+from capvector.core.training.trainer import AuxConfig, TrainConfig, train
 
 # 16-pixel images, two stride-2 convs: a 4 x 4 token grid, so demos are collected with patch_grid=4
 POLICY = dict(

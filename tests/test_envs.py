@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from capvector_core.demos import EVAL_SEED_BASE, TRAIN_SEED_BASE
-from capvector_core.envs import (
+from capvector.core.simulation.demos import EVAL_SEED_BASE, TRAIN_SEED_BASE
+from capvector.core.simulation.envs import (
     EPISODE_MODEL_FIELDS,
     EnvConfig,
     MetaWorldEnv,
@@ -14,7 +14,7 @@ from capvector_core.envs import (
     _compiled_model,
     expert_action,
 )
-from capvector_core.metaworld_tasks import (
+from capvector.core.simulation.metaworld_tasks import (
     DIFFICULTY_GROUPS,
     INSTRUCTIONS,
     TASK_NAMES,

@@ -6,9 +6,9 @@ from __future__ import annotations
 import typer
 from typer.testing import CliRunner
 
-from capvector_core.eval_fields import EVAL_FIELDS
-from capvector_core.evaluation import EvalConfig
-from flows.eval_options import eval_options
+from capvector.core.evaluation.fields import EVAL_FIELDS
+from capvector.core.evaluation.rollouts import EvalConfig
+from capvector.flows.cli.eval_options import eval_options
 from tests.conftest import run_cli
 
 

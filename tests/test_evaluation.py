@@ -5,9 +5,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
-from capvector_core.envs import MetaWorldEnv
-from capvector_core.evaluation import (
+from capvector.core.evaluation.rollouts import (
     EpisodeRecord,
     EvalConfig,
     EvalResult,
@@ -16,6 +14,8 @@ from capvector_core.evaluation import (
     protocol_dict,
     protocol_fingerprint,
 )
+from capvector.core.simulation.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
+from capvector.core.simulation.envs import MetaWorldEnv
 
 TASKS = ["reach-v3", "drawer-close-v3"]
 

@@ -18,9 +18,9 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from flows.catalogue_commands import catalogue_app
-from flows.housekeeping import ACTIVE_S, logs_dir, prune_logs, prune_on_start
-from tasks.workspace import Workspace
+from capvector.flows.cli.catalogue_commands import catalogue_app
+from capvector.flows.runtime.housekeeping import ACTIVE_S, logs_dir, prune_logs, prune_on_start
+from capvector.tasks.runtime.workspace import Workspace
 
 REPO = Path(__file__).resolve().parent.parent
 DAY = 86400.0
@@ -169,8 +169,8 @@ PREFECT_SCRIPT = textwrap.dedent(
     from prefect.logging.handlers import APILogHandler
     from typer.testing import CliRunner
 
-    from flows.catalogue_commands import catalogue_app
-    from flows.housekeeping import prune_prefect_db
+    from capvector.flows.cli.catalogue_commands import catalogue_app
+    from capvector.flows.runtime.housekeeping import prune_prefect_db
 
     @task
     def step(i):

@@ -19,15 +19,15 @@ from conftest import run_cli
 from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
-from artifacts import store as store_mod
-from artifacts.api import ArtifactsAPI
-from artifacts.errors import CorruptArtifact
-from artifacts.records import SEAL_FIELD, metadata_digest
-from artifacts.store import ArtifactStore
-from flows.cli import app
-from tasks import evaluation
-from tasks.vector_commands import merge_cli, stats_cli
-from tasks.workspace import Workspace
+from capvector.artifacts import store as store_mod
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.errors import CorruptArtifact
+from capvector.artifacts.records import SEAL_FIELD, metadata_digest
+from capvector.artifacts.store import ArtifactStore
+from capvector.flows.cli.main import app
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps import evaluation
+from capvector.tasks.vector_commands import merge_cli, stats_cli
 
 TINY = dict(d_model=32, n_layers=2, n_heads=4, chunk_size=4, vocab_size=64, max_instruction_tokens=6)
 SHAPES = {"blocks.0.attn.weight": (6, 4), "blocks.0.attn.bias": (6,), "blocks.1.mlp.weight": (3, 6)}
@@ -142,9 +142,9 @@ def test_merge_force_onto_a_rotted_base_registers_nothing(ws, tmp_path):
 
 
 def test_evaluate_of_a_rotted_checkpoint_registers_nothing(tmp_path, monkeypatch):
-    from capvector_core.evaluation import EvalConfig
-    from capvector_core.policies import L1ChunkConfig, L1ChunkPolicy
-    from capvector_core.policy import save_policy
+    from capvector.core.evaluation.rollouts import EvalConfig
+    from capvector.core.policies import L1ChunkConfig, L1ChunkPolicy
+    from capvector.core.policies.base import save_policy
 
     workspace = Workspace(str(tmp_path / "home"))
     torch.manual_seed(0)

@@ -36,7 +36,7 @@ def _interrupt_when(pattern: re.Pattern, tmp_path: Path) -> None:
     err_path = tmp_path / "stderr"
     with err_path.open("wb") as err, (tmp_path / "stdout").open("wb") as out:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke"],
+            [sys.executable, "-m", "capvector", "run", "--preset", "smoke"],
             cwd=REPO, env=env, stdout=out, stderr=err, start_new_session=True,
         )  # fmt: skip
     try:
@@ -92,7 +92,7 @@ def test_ctrl_c_during_evaluation_ends_the_run_in_seconds_with_one_line(tmp_path
 
 BUSY_FLOW = """
 import subprocess, sys, time
-from flows.process_tree import stop_on_signals
+from capvector.flows.cli.process_tree import stop_on_signals
 stop_on_signals()
 helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
 from prefect.utilities.engine import capture_sigterm

@@ -14,10 +14,10 @@ import pytest
 from test_catalogue import mermaid_edges, tree_edges
 from typer.testing import CliRunner
 
-from artifacts.api import ArtifactsAPI
-from artifacts.catalogue import Catalogue
-from flows.cli import app
-from flows.lineage_views import CHAIN, as_mermaid, as_tree, keep_kinds
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.catalogue import Catalogue
+from capvector.flows.cli.main import app
+from capvector.flows.views.lineage import CHAIN, as_mermaid, as_tree, keep_kinds
 
 KINDS = ("checkpoint", "vector", "evaluation", "selection", "dataset")
 

@@ -9,11 +9,11 @@ import torch
 from safetensors.torch import save_file
 from typer.testing import CliRunner
 
-from capvector_core.policy import PolicyLoadError, build_policy, load_policy, save_policy
-from capvector_core.safetensors_io import INDEX_NAME, Checkpoint, CheckpointError, write_checkpoint
-from capvector_core.vector_ops import VectorOpError, extract, merge
-from flows.cli import app
-from tasks.workspace import Workspace
+from capvector.core.policies.base import PolicyLoadError, build_policy, load_policy, save_policy
+from capvector.core.vectors.safetensors_io import INDEX_NAME, Checkpoint, CheckpointError, write_checkpoint
+from capvector.core.vectors.vector_ops import VectorOpError, extract, merge
+from capvector.flows.cli.main import app
+from capvector.tasks.runtime.workspace import Workspace
 
 CONFIG = b'{\n  "type": "act",\n  "chunk_size": 8\n}\n'  # bytes as a user's tool wrote them
 
@@ -148,9 +148,9 @@ def test_base_check_compares_tensor_content_not_layout(tmp_path):
 def test_evaluate_a_merged_folder_of_a_builtin_policy_and_refuse_an_unknown_type(tmp_path, monkeypatch):
     import prefect.artifacts
 
-    from capvector_core.evaluation import EvalConfig
-    from tasks import evaluation
-    from tasks.trained_policy import resolve_checkpoints
+    from capvector.core.evaluation.rollouts import EvalConfig
+    from capvector.tasks.steps import evaluation
+    from capvector.tasks.trained_policy import resolve_checkpoints
 
     spec = {"type": "l1_chunk", "d_model": 16, "n_layers": 1, "n_heads": 2, "chunk_size": 2}
     files = {}

@@ -9,7 +9,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from capvector_core.lora import (
+from capvector.core.adapters.lora import (
     LoraConfig,
     adapter_modules,
     apply_lora,
@@ -208,7 +208,7 @@ import json, sys, time
 sys.path.insert(0, sys.argv[1])
 from torch import nn
 from test_lora import TinyPolicy
-from capvector_core.lora import load_adapter
+from capvector.core.adapters.lora import load_adapter
 for pattern in json.loads(sys.argv[3]):
     doc = json.loads(open(sys.argv[2] + "/adapter_config.json").read())
     open(sys.argv[2] + "/adapter_config.json", "w").write(json.dumps({**doc, "target_modules": pattern}))

@@ -7,9 +7,9 @@ import torch
 from safetensors.torch import load_file
 from torch import nn
 
-from capvector_core import lora
-from capvector_core.lora import merge_lora, trainable_parameter_count
-from capvector_core.lora_sp import (
+from capvector.core.adapters import lora
+from capvector.core.adapters.lora import merge_lora, trainable_parameter_count
+from capvector.core.adapters.lora_sp import (
     LoraSPConfig,
     active_ranks,
     apply_lora_sp,

@@ -8,7 +8,8 @@ import re
 import pytest
 import torch
 
-from capvector_core.module_patterns import (
+from capvector.core.policies.base import build_policy
+from capvector.core.vectors.module_patterns import (
     PatternError,
     dead_patterns,
     from_peft,
@@ -16,7 +17,6 @@ from capvector_core.module_patterns import (
     select,
     to_peft_regex,
 )
-from capvector_core.policy import build_policy
 
 NAME = "backbone.layers.0.attn.q_proj"
 

@@ -14,12 +14,12 @@ import torch
 from safetensors.torch import save_file
 from typer.testing import CliRunner
 
-from artifacts import catalogue as catalogue_mod
-from artifacts import store as store_mod
-from artifacts.api import ArtifactsAPI
-from artifacts.errors import CorruptArtifact
-from artifacts.records import SEAL_FIELD
-from flows.cli import app
+from capvector.artifacts import catalogue as catalogue_mod
+from capvector.artifacts import store as store_mod
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.errors import CorruptArtifact
+from capvector.artifacts.records import SEAL_FIELD
+from capvector.flows.cli.main import app
 
 SHAPES = {"blocks.0.attn.weight": (6, 4), "blocks.1.mlp.weight": (3, 6)}
 

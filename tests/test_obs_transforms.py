@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from capvector_core.obs_transforms import POSITIONS, ObsTransform, ObsTransformConfig
-from capvector_core.policy import build_policy, load_policy, save_policy
-from flows.study_config import load_study
+from capvector.core.policies.base import build_policy, load_policy, save_policy
+from capvector.core.simulation.obs_transforms import POSITIONS, ObsTransform, ObsTransformConfig
+from capvector.flows.study.config import load_study
 
 POLICY = {"obs_mode": "state", "d_model": 32, "n_layers": 1, "n_heads": 2, "chunk_size": 4}
 RANDOM = {"kind": "random_features", "features": 40, "distractors": 10, "seed": 3}

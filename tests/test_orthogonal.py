@@ -6,10 +6,10 @@ import torch
 from peft.tuners.lora import LoraLayer
 from torch import nn
 
-from capvector_core.lora import LoraConfig, apply_lora, delta_weight, load_adapter
-from capvector_core.lora_sp import LoraSPConfig, apply_lora_sp
-from capvector_core.orthogonal import OrthogonalRegularizer
-from capvector_core.safetensors_io import write_checkpoint
+from capvector.core.adapters.lora import LoraConfig, apply_lora, delta_weight, load_adapter
+from capvector.core.adapters.lora_sp import LoraSPConfig, apply_lora_sp
+from capvector.core.training.orthogonal import OrthogonalRegularizer
+from capvector.core.vectors.safetensors_io import write_checkpoint
 
 
 def _model():
@@ -228,7 +228,7 @@ def test_dense_fused_equals_per_tensor_reference():
     assert torch.equal(reg(model).detach(), reference().detach())
     with torch.no_grad():  # evaluation only: no graph, same value
         assert torch.equal(reg(model), reference())
-    # a λ changed after construction (tasks/training.py scales it) is the one used, forward and backward
+    # a λ changed after construction (tasks/steps/training.py scales it) is the one used, forward and backward
     reg.weight = 0.05
     for p in model.parameters():
         p.grad = None

@@ -8,9 +8,9 @@ import torch
 from safetensors.torch import save_file
 from typer.testing import CliRunner
 
-from flows import cli_common
-from flows.cli import app
-from tasks.workspace import Workspace
+from capvector.flows.cli import common as cli_common
+from capvector.flows.cli.main import app
+from capvector.tasks.runtime.workspace import Workspace
 
 TASKS = ["button-press-topdown-wall-v3", "button-press-wall-v3", "button-press-v3"]
 

@@ -15,7 +15,7 @@ from peft.tuners.lora import LoraLayer
 from torch import nn
 from torch.nn import functional as F
 
-from capvector_core.lora import (
+from capvector.core.adapters.lora import (
     LoraConfig,
     adapter_modules,
     apply_lora,
@@ -23,7 +23,7 @@ from capvector_core.lora import (
     merge_lora,
     save_adapter,
 )
-from capvector_core.policy import build_policy
+from capvector.core.policies.base import build_policy
 
 TARGETS = ["attn.*_proj", "mlp.fc*", "action_head.*"]  # the pipeline's default LoRA targets
 

@@ -13,15 +13,15 @@ from conftest import REPO, run_cli
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
-from artifacts.api import ArtifactsAPI
-from artifacts.scores import read_scores
-from capvector_core.demos import VALIDATION_SEED_BASE
-from flows.config import load_config
-from flows.pipeline import pipeline
-from flows.report import write_report
-from flows.sweep import sweep_flow
-from tasks import reporting
-from tasks.workspace import Workspace
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.scores import read_scores
+from capvector.core.simulation.demos import VALIDATION_SEED_BASE
+from capvector.flows.recipe.config import load_config
+from capvector.flows.recipe.flow import pipeline
+from capvector.flows.recipe.report import write_report
+from capvector.flows.recipe.sweep import sweep_flow
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps import reporting
 
 UPSTREAM = ("pretrained", "standard", "auxiliary", "vector", "meta")
 
@@ -131,7 +131,7 @@ def test_a_killed_flow_resumes_from_cached_steps(smoke_home, tmp_path):
     _, reference = smoke_home
     home = tmp_path / "home"
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
-    cmd = [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke", "--json"]
+    cmd = [sys.executable, "-m", "capvector", "run", "--preset", "smoke", "--json"]
     proc = subprocess.Popen(
         cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, start_new_session=True
     )

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from flows.config import load_config
-from flows.recipe import pipeline_plan
-from flows.study import gated_study_plan, study_plan, study_steps
-from flows.study_config import load_study
+from capvector.flows.recipe.config import load_config
+from capvector.flows.recipe.plan import pipeline_plan
+from capvector.flows.study.config import load_study
+from capvector.flows.study.plan import gated_study_plan, study_plan, study_steps
 
 
 def labels(plan) -> list[str]:
@@ -53,8 +53,8 @@ def test_a_gated_plan_counts_the_steps_before_the_gate_apart_from_those_after_it
 def test_a_passed_gate_grows_the_announced_total_to_the_whole_plan(capfd):
     """When the gate passes, the runner's `k/N` total grows by the steps after it, so a study that runs
     every step ends at N/N with N the whole plan."""
-    from flows.steps import PlanRecorder
-    from flows.study import _PlannedStudy, _run_study
+    from capvector.flows.runtime.step_submission import PlanRecorder
+    from capvector.flows.study.plan import _PlannedStudy, _run_study
 
     cfg = load_study("study-smoke", ["study.gate=true"])
     before, after = study_steps(cfg)

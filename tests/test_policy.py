@@ -7,9 +7,8 @@ import pytest
 import torch
 from pydantic import ValidationError
 
-from capvector_core import tokenizer
-from capvector_core.policies import FlowConfig, FlowPolicy, L1ChunkConfig, L1ChunkPolicy
-from capvector_core.policy import (
+from capvector.core.policies import FlowConfig, FlowPolicy, L1ChunkConfig, L1ChunkPolicy, tokenizer
+from capvector.core.policies.base import (
     CONFIG_METADATA_KEY,
     build_policy,
     load_policy,
@@ -204,7 +203,7 @@ def test_saved_file_is_byte_identical_across_processes(tmp_path):
     import sys
 
     script = (
-        "import sys, torch; from capvector_core.policy import build_policy, save_policy\n"
+        "import sys, torch; from capvector.core.policies.base import build_policy, save_policy\n"
         "torch.manual_seed(0); m = build_policy({'d_model': 16, 'n_layers': 1, 'n_heads': 2}, 'cpu')\n"
         "save_policy(m, sys.argv[1], {'b': '1', 'a': '2', 'c': '3'})\n"
     )

@@ -9,8 +9,8 @@ import json
 import pytest
 from conftest import REPO, run_cli
 
-from artifacts.api import ArtifactsAPI
-from capvector_core.policy import CONFIG_METADATA_KEY, read_metadata
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.core.policies.base import CONFIG_METADATA_KEY, read_metadata
 
 PLUGIN_PATH = str(REPO / "tests" / "policy_plugin")
 

@@ -1,6 +1,7 @@
 """A training step killed on one machine resumes on another (issue 23, item 5).
 
-Each resumable checkpoint is copied to a shared scratch folder (tasks.scratch: `<home>/scratch` for a
+Each resumable checkpoint is copied to a shared scratch folder (capvector.tasks.runtime.scratch:
+`<home>/scratch` for a
 home on S3, here a local moto server; `CAPVECTOR_SCRATCH` for any home), files first and the manifest
 naming them last. The same step run on another machine (another CAPVECTOR_CACHE: no local run dir)
 fetches the newest complete one and the trainer resumes from it: the same weights, bit for bit, as an
@@ -15,12 +16,12 @@ from pathlib import Path
 import pytest
 from safetensors.torch import load_file
 
-from artifacts import catalogue as catalogue_mod
-from tasks import training
-from tasks.caching import content_key
-from tasks.scratch import MANIFEST, SCRATCH_ENV, CheckpointMirror
-from tasks.training import TrainStepConfig, run_train
-from tasks.workspace import Workspace
+from capvector.artifacts import catalogue as catalogue_mod
+from capvector.tasks.runtime.caching import content_key
+from capvector.tasks.runtime.scratch import MANIFEST, SCRATCH_ENV, CheckpointMirror
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps import training
+from capvector.tasks.steps.training import TrainStepConfig, run_train
 from tests.test_trainer import TINY, make_dataset, quick
 
 TRAIN = dict(
@@ -82,7 +83,8 @@ def test_a_step_killed_on_one_machine_resumes_on_another_bit_for_bit(bucket, tmp
     a = machine(monkeypatch, tmp_path / "machine-a", home)
     data = a.api.register_dir(make_dataset().save(tmp_path / "data"), kind="dataset", name="d").id
     inputs = {"data": data}
-    key = content_key("train", inputs, TrainStepConfig.model_validate(CONFIG), "tasks.training")
+    config = TrainStepConfig.model_validate(CONFIG)
+    key = content_key("train", inputs, config, "capvector.tasks.steps.training")
     with monkeypatch.context() as m:
         kill_at(m, 8)
         with pytest.raises(Preempted):
@@ -138,7 +140,8 @@ def test_a_local_home_copies_checkpoints_only_to_a_configured_scratch_url(tmp_pa
     monkeypatch.setenv(SCRATCH_ENV, f"file://{shared}")
     data = workspace.api.register_dir(make_dataset().save(tmp_path / "data"), kind="dataset", name="d").id
     inputs = {"data": data}
-    key = content_key("train", inputs, TrainStepConfig.model_validate(CONFIG), "tasks.training")
+    config = TrainStepConfig.model_validate(CONFIG)
+    key = content_key("train", inputs, config, "capvector.tasks.steps.training")
     with monkeypatch.context() as m:
         kill_at(m, 4)
         with pytest.raises(Preempted):

@@ -17,8 +17,8 @@ import httpx
 import pytest
 from conftest import REPO
 
-from artifacts.api import ArtifactsAPI
-from artifacts.errors import CatalogueBusy
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.errors import CatalogueBusy
 
 DEPLOYMENT = "reevaluate/scheduled-reevaluation"
 TERMINAL = {"COMPLETED", "FAILED", "CRASHED", "CANCELLED"}
@@ -125,7 +125,7 @@ def test_served_reevaluation_deployment_writes_new_scores(smoke_home, tmp_path):
         client_env = _env(tmp_path / "prefect-client", PREFECT_API_URL=api_url, CAPVECTOR_HOME=str(home))
         serve_log = tmp_path / "serve.log"
         serve = _start(
-            [sys.executable, "-m", "flows.cli", "schedule", "--cron", "0 3 * * *", "--home", str(home)],
+            [sys.executable, "-m", "capvector", "schedule", "--cron", "0 3 * * *", "--home", str(home)],
             client_env,
             serve_log,
         )
@@ -197,7 +197,7 @@ def _fingerprint(home: Path, ids: dict) -> str:
 def test_unreachable_server_fails_fast_naming_the_url(tmp_path):
     url = f"http://127.0.0.1:{_free_port()}/api"  # nothing listens there once the probe socket is closed
     proc = subprocess.run(
-        [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke"],
+        [sys.executable, "-m", "capvector", "run", "--preset", "smoke"],
         cwd=REPO,
         env=_env(tmp_path / "prefect", PREFECT_API_URL=url, CAPVECTOR_HOME=str(tmp_path / "home")),
         capture_output=True,
@@ -229,7 +229,7 @@ def test_runs_are_named_and_tagged_and_step_progress_reaches_the_logs(smoke_home
         _wait_for("/api/health", healthy, procs, 300)
         client_env = _env(tmp_path / "prefect-client", PREFECT_API_URL=api_url)
         run = subprocess.run(  # a changed horizon: every evaluation step runs again in a pool worker
-            [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke", "--set", "evaluation.horizon=30",
+            [sys.executable, "-m", "capvector", "run", "--preset", "smoke", "--set", "evaluation.horizon=30",
              "--json", "--home", str(home)],  # fmt: skip
             cwd=REPO,
             env=client_env,

@@ -89,7 +89,7 @@ def test_one_server_per_run_and_kill_9_leaves_no_process_and_commits_nothing(tmp
     home = tmp_path / "home"
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "run", "--preset", "smoke"],
+        [sys.executable, "-m", "capvector", "run", "--preset", "smoke"],
         cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
     )  # fmt: skip
     try:
@@ -129,7 +129,7 @@ INTERMEDIATE = textwrap.dedent(
     """
     import multiprocessing, os, subprocess, sys, time
     from concurrent.futures import ProcessPoolExecutor
-    from tasks.prefect_task import bind_worker_to_parent
+    from capvector.tasks.runtime.prefect_task import bind_worker_to_parent
 
     def busy(path):
         with open(path, "w") as handle:
@@ -172,8 +172,8 @@ def test_a_bound_worker_dies_with_its_parent(tmp_path):
 
 def test_an_orphaned_worker_refuses_to_run_a_step(tmp_path, monkeypatch):
     """Were a worker to outlive its CLI (no parent-death signal outside Linux), it starts no step."""
-    import tasks.prefect_task as prefect_task
-    from tasks.data import collect_demos_task
+    import capvector.tasks.runtime.prefect_task as prefect_task
+    from capvector.tasks.steps.data import collect_demos_task
 
     monkeypatch.setattr(prefect_task, "_bound_parent", os.getpid())  # we are not our own parent
     with pytest.raises(prefect_task.RunAbandoned, match="parent"):

@@ -19,10 +19,10 @@ boto3 = pytest.importorskip("boto3")
 
 from typer.testing import CliRunner  # noqa: E402
 
-from artifacts import catalogue as catalogue_mod  # noqa: E402
-from artifacts.api import ArtifactsAPI  # noqa: E402
-from artifacts.store import ArtifactStore  # noqa: E402
-from flows.cli import app  # noqa: E402
+from capvector.artifacts import catalogue as catalogue_mod  # noqa: E402
+from capvector.artifacts.api import ArtifactsAPI  # noqa: E402
+from capvector.artifacts.store import ArtifactStore  # noqa: E402
+from capvector.flows.cli.main import app  # noqa: E402
 
 TABLES = ["artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs"]
 
@@ -204,8 +204,8 @@ def test_a_fresh_machine_finds_a_step_another_machine_computed(s3_endpoint, tmp_
     key in the store. A driver on another machine (its own CAPVECTOR_CACHE, no index entry), whose
     catalogue was opened just before the worker computed the step, gets the artifact from the cache at
     its next open instead of computing the step again (before the change token: recomputed for 60 s)."""
-    from tasks.caching import cached_step
-    from tasks.workspace import Workspace
+    from capvector.tasks.runtime.caching import cached_step
+    from capvector.tasks.runtime.workspace import Workspace
 
     bucket = f"capvector-{uuid.uuid4().hex[:12]}"
     boto3.client("s3").create_bucket(Bucket=bucket)
@@ -230,7 +230,7 @@ def test_a_fresh_machine_finds_a_step_another_machine_computed(s3_endpoint, tmp_
 
 COMMIT_ELSEWHERE = """
 import sys
-from artifacts.store import ArtifactStore
+from capvector.artifacts.store import ArtifactStore
 print(ArtifactStore(sys.argv[1]).put_json({"from": "another process"}, "metrics", "other").id)
 """
 

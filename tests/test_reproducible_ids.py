@@ -12,12 +12,12 @@ from datetime import datetime
 
 import torch
 
-from capvector_core.evaluation import EpisodeRecord, EvalConfig, EvalResult
-from capvector_core.safetensors_io import Checkpoint, write_checkpoint
-from tasks import reporting
-from tasks.evaluation import evaluation_doc
-from tasks.vectors import run_extract, run_merge
-from tasks.workspace import Workspace, library_versions
+from capvector.core.evaluation.rollouts import EpisodeRecord, EvalConfig, EvalResult
+from capvector.core.vectors.safetensors_io import Checkpoint, write_checkpoint
+from capvector.tasks.runtime.workspace import Workspace, library_versions
+from capvector.tasks.steps import reporting
+from capvector.tasks.steps.evaluation import evaluation_doc
+from capvector.tasks.steps.vectors import run_extract, run_merge
 
 SHAPES = {"blocks.0.attn.weight": (6, 4), "blocks.0.attn.bias": (6,), "blocks.1.mlp.weight": (3, 6)}
 
@@ -90,7 +90,7 @@ def test_a_report_gives_the_same_id_whatever_the_measured_speeds(tmp_path):
     """The report used to hold each run's steps/s, ms/step and wall time: a measurement of the machine
     and its load, different on every run. They stay in the checkpoints' records, and `capvector report`
     reads them from there."""
-    from flows.report import write_report
+    from capvector.flows.recipe.report import write_report
 
     ckpt = _checkpoint(tmp_path / "ckpt.safetensors", 0)
     ids = []

@@ -15,8 +15,8 @@ import pytest
 from conftest import run_cli
 from typer.testing import CliRunner
 
-from artifacts.api import ArtifactsAPI
-from flows.cli import app
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.flows.cli.main import app
 
 TEST, TEST_B, VALIDATION, VALIDATION_EXT = "a1" * 32, "c3" * 32, "b2" * 32, "d4" * 32
 BASES = {TEST: 100_000, TEST_B: 100_000, VALIDATION: 50_000, VALIDATION_EXT: 50_000}
@@ -172,7 +172,7 @@ def test_a_studys_per_draw_and_per_replicate_runs_get_their_arm_draw_study_and_s
     """Issue 37: `downstream sft_from_ao draw 0 seed 0` and `downstream capvector replicate 0 seed 1` are
     downstream runs of their arm, draw or replicate (not `other`); a run is labelled with the study its
     flow run ran (or whose analysis has it in its lineage), that run's state and its training time."""
-    from artifacts.records import RunRecord
+    from capvector.artifacts.records import RunRecord
 
     home, ids = home
     api = ArtifactsAPI(str(home))

@@ -8,7 +8,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file
 
-from capvector_core.safetensors_io import (
+from capvector.core.vectors.safetensors_io import (
     INDEX_NAME,
     Checkpoint,
     CheckpointError,

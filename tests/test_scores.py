@@ -1,4 +1,5 @@
-"""A score lives in one place: the evaluation's document, read through the catalogue (artifacts.scores).
+"""A score lives in one place: the evaluation's document, read through the catalogue
+(capvector.artifacts.scores).
 
 Evaluations recorded before this carried `mean_success`/`success_rates` in their sidecar config. Here
 such sidecars hold deliberately wrong copies, so any reader still using them would show 0 %.
@@ -9,14 +10,14 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from artifacts.api import ArtifactsAPI
-from artifacts.scores import read_scores
-from flows.cli import app
-from flows.comparison import compare_checkpoints
-from flows.evaluation_flows import _latest_scores
-from flows.report import write_report
-from tasks.reporting import ReportRun, comparison, load_report, run_report
-from tasks.workspace import Workspace
+from capvector.artifacts.api import ArtifactsAPI
+from capvector.artifacts.scores import read_scores
+from capvector.flows.cli.main import app
+from capvector.flows.evaluation.flow import _latest_scores
+from capvector.flows.recipe.report import write_report
+from capvector.flows.views.comparison import compare_checkpoints
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.reporting import ReportRun, comparison, load_report, run_report
 
 REACH, DRAWER = "reach-v3", "drawer-close-v3"
 STALE = {"success_rates": {REACH: 0.0, DRAWER: 0.0}, "mean_success": 0.0, "wall_time_s": 1.0}
@@ -196,8 +197,8 @@ def two_protocols(tmp_path):
 
 
 def test_protocol_names_are_the_seed_bases_of_capvector_core():
-    from capvector_core.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
-    from flows.protocols import NAMES
+    from capvector.core.simulation.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
+    from capvector.flows.evaluation.protocols import NAMES
 
     assert NAMES == {"test": EVAL_SEED_BASE, "validation": VALIDATION_SEED_BASE}
 

@@ -3,8 +3,8 @@ from, and a step using the value names it as a parent: lineage shows why a numbe
 
 import pytest
 
-from tasks.selection import chosen, run_select
-from tasks.workspace import Workspace
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.selection import chosen, run_select
 
 REACH = "reach-v3"
 
@@ -83,7 +83,7 @@ def test_a_step_using_a_chosen_value_names_the_selection_as_its_parent(tmp_path)
     import torch
     from safetensors.torch import save_file
 
-    from tasks.vectors import run_merge
+    from capvector.tasks.steps.vectors import run_merge
 
     ws = Workspace(str(tmp_path / "home"))
     evals = {f"α {a}": _evaluation(ws, f"m{a}", [a > 1]) for a in (0.5, 1.1)}

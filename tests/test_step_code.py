@@ -5,10 +5,16 @@ from pathlib import Path
 
 import pytest
 
-from tasks.step_code import PROJECT_PACKAGES, imported_names, module_closure
+from capvector.tasks.runtime.step_code import (
+    PROJECT_PACKAGES,
+    imported_names,
+    is_project_module,
+    module_closure,
+)
 
 REPO = Path(__file__).resolve().parent.parent
 PACKAGES = (
+    "capvector",
     "capvector_core",
     "capvector_stats",
     "tasks",
@@ -43,10 +49,14 @@ def test_the_scan_misses_no_import_in_any_project_file(package: str) -> None:
 @pytest.mark.parametrize("package", PROJECT_PACKAGES)
 def test_the_scan_adds_no_project_module_to_a_hashed_file(package: str) -> None:
     """Text that only looks like an import (a docstring's example) may not widen a step's closure."""
-    for path in sorted((REPO / package).rglob("*.py")):
+    folders = {"capvector.core": "capvector_core", "capvector.stats": "capvector_stats"}
+    folder = REPO / folders.get(package, "tasks")
+    files = sorted(folder.rglob("*.py"))
+    assert files, folder
+    for path in files:
         source = path.read_text()
-        project = {n for n in imported_names(source) if n.split(".")[0] in PROJECT_PACKAGES}
-        assert project == {n for n in parsed_names(source) if n.split(".")[0] in PROJECT_PACKAGES}, path
+        project = {n for n in imported_names(source) if is_project_module(n)}
+        assert project == {n for n in parsed_names(source) if is_project_module(n)}, path
 
 
 def test_every_import_form() -> None:
@@ -69,7 +79,8 @@ from . import relative
 
 
 def test_a_lazy_import_is_in_the_closure() -> None:
-    """tasks.evaluation imports Prefect's artifacts inside a function; project modules imported that
-    way (tasks.held_out_loss via capvector_core.held_out_loss) must count too."""
-    assert "capvector_core.held_out_loss" in module_closure("tasks.held_out_loss")
-    assert "capvector_core.demos" in module_closure("tasks.held_out_loss")
+    """capvector.tasks.steps.evaluation imports Prefect's artifacts inside a function; project modules
+    imported that
+    way (capvector.tasks.steps.held_out_loss via capvector.core.training.held_out_loss) must count too."""
+    assert "capvector.core.training.held_out_loss" in module_closure("capvector.tasks.steps.held_out_loss")
+    assert "capvector.core.simulation.demos" in module_closure("capvector.tasks.steps.held_out_loss")

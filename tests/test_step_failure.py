@@ -5,7 +5,8 @@ A flow that waits for the end of a chain whose first step failed gets only Prefe
 step's inputs never came (`UpstreamTaskError` from a pool, `UnfinishedRun` from a thread runner:
 "Upstream task run '<uuid>' did not reach a 'COMPLETED' state"), which names neither the step nor the
 error: the CLI printed that. Here a toy chain of three steps runs through the real console entry point
-(flows.cli.main, with the real step runners), as `capvector study` would when a study's step fails.
+(capvector.flows.cli.main.main, with the real step runners), as `capvector study` would when a study's step
+fails.
 """
 
 import os
@@ -20,12 +21,12 @@ TOY_CLI = textwrap.dedent(
     """
     from prefect import flow
 
-    from flows import cli
-    from flows.flow_commands import FLOW_COMMANDS, preflight
-    from flows.home import resolve_home
-    from flows.runners import RunnerConfig, build_runner
-    from flows.steps import StepRunner, resolve
-    from tasks.prefect_task import pipeline_task
+    from capvector.flows.cli import main as cli
+    from capvector.flows.cli.experiment_commands import FLOW_COMMANDS, preflight
+    from capvector.flows.runtime.home import resolve_home
+    from capvector.flows.runtime.task_runners import RunnerConfig, build_runner
+    from capvector.flows.runtime.step_submission import StepRunner, resolve
+    from capvector.tasks.runtime.prefect_task import pipeline_task
 
 
     @pipeline_task("toy step", content_cached=False)

@@ -1,4 +1,5 @@
-"""The flows' process pool starts a ready step while others wait for their inputs (flows.step_pool).
+"""The flows' process pool starts a ready step while others wait for their inputs
+(capvector.flows.runtime.step_pool).
 
 A toy flow on 2 workers: a slow step `a`, two steps that wait for `a`, then an independent step `c`,
 submitted in that order as a study submits its tuning runs. `c` must start while `a` still runs. On
@@ -23,7 +24,7 @@ TOY_FLOW = textwrap.dedent(
     from prefect import flow, task
     from prefect.task_runners import ProcessPoolTaskRunner
 
-    from flows.step_pool import StepPool
+    from capvector.flows.runtime.step_pool import StepPool
 
 
     @task

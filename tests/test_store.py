@@ -8,7 +8,7 @@ import uuid
 
 import pytest
 
-from artifacts.errors import (
+from capvector.artifacts.errors import (
     AmbiguousId,
     ArtifactNotFound,
     CorruptArtifact,
@@ -16,10 +16,10 @@ from artifacts.errors import (
     PathEscape,
     UnknownParent,
 )
-from artifacts.hashing import hash_file, manifest_id
-from artifacts.provenance import code_version, installed_versions
-from artifacts.records import SEAL_FIELD, RunRecord, metadata_digest
-from artifacts.store import ArtifactStore
+from capvector.artifacts.hashing import hash_file, manifest_id
+from capvector.artifacts.provenance import code_version, installed_versions
+from capvector.artifacts.records import SEAL_FIELD, RunRecord, metadata_digest
+from capvector.artifacts.store import ArtifactStore
 
 
 @pytest.fixture

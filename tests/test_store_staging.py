@@ -7,9 +7,9 @@ import os
 
 import pytest
 
-from artifacts import store as store_mod
-from artifacts.errors import CorruptArtifact
-from artifacts.store import ArtifactStore, copy_file
+from capvector.artifacts import store as store_mod
+from capvector.artifacts.errors import CorruptArtifact
+from capvector.artifacts.store import ArtifactStore, copy_file
 
 
 @pytest.fixture

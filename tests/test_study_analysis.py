@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capvector_stats.paired_differences import ENDPOINT
-from tasks.held_out_loss import MEASUREMENT_KIND
-from tasks.study_analysis import StudyDesign, analyse, gate_passed, run_analyse_study
-from tasks.study_inputs import (
+from capvector.stats.paired_differences import ENDPOINT
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.held_out_loss import MEASUREMENT_KIND
+from capvector.tasks.steps.study_analysis import StudyDesign, analyse, gate_passed, run_analyse_study
+from capvector.tasks.study_inputs import (
     CapabilityVector,
     DownstreamLoss,
     ExtractionValidation,
@@ -17,7 +18,6 @@ from tasks.study_inputs import (
     StandardRun,
     TestEvaluation,
 )
-from tasks.workspace import Workspace
 
 TASKS = ("reach-v3", "push-v3")
 GOALS = 40
@@ -176,8 +176,8 @@ def test_precondition_e_estimates_the_signal_fraction_and_norm_with_intervals(tm
     predicts; cos(γ, θ_ft − θ_pt) is reported."""
     import torch
 
-    from tasks.study_inputs import Pretrained, ReplicateVector
-    from tasks.vectors import run_mean_vector
+    from capvector.tasks.steps.vectors import run_mean_vector
+    from capvector.tasks.study_inputs import Pretrained, ReplicateVector
 
     ws = Workspace(tmp_path / "home")
     inputs, design = _study(ws, draws=[0, 1, 2, 3], seeds=[0, 1])

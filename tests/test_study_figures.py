@@ -11,9 +11,9 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from capvector_stats.paired_differences import ENDPOINT
-from flows import study_figures
-from tasks.study_analysis import StudyReport, _per_task_intervals
+from capvector.flows.study import figures as study_figures
+from capvector.stats.paired_differences import ENDPOINT
+from capvector.tasks.steps.study_analysis import StudyReport, _per_task_intervals
 
 GOLDEN = Path(__file__).parent / "data" / "study_smoke_report.json"
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-from capvector_core.demos import EVAL_SEED_BASE, UNIT_SEEDS, VALIDATION_SEED_BASE
-from capvector_stats.paired_differences import ENDPOINT
-from flows.study_config import load_study
-from tasks.study_analysis import StudyReport
-from tasks.workspace import Workspace
+from capvector.core.simulation.demos import EVAL_SEED_BASE, UNIT_SEEDS, VALIDATION_SEED_BASE
+from capvector.flows.study.config import load_study
+from capvector.stats.paired_differences import ENDPOINT
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.study_analysis import StudyReport
 from tests.conftest import run_cli
 
 

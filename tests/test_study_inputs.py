@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from tasks.study_inputs import HeldOutLoss, Selection, TestEvaluation, inputs_of
+from capvector.tasks.study_inputs import HeldOutLoss, Selection, TestEvaluation, inputs_of
 
 
 def test_a_key_round_trips_through_its_text():

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from capvector_stats.paired_differences import (
+from capvector.stats.paired_differences import (
     ENDPOINT,
     SHARED_DRAW,
     VarianceComponents,

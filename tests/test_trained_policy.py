@@ -3,15 +3,15 @@
 import pytest
 import torch
 
-from capvector_core import lora_sp
-from capvector_core.evaluation import EvalConfig
-from capvector_core.lora import LoraConfig
-from capvector_core.lora_sp import LoraSPConfig
-from capvector_core.policy import Policy, build_policy, load_policy, save_policy
-from tasks import evaluation
-from tasks.trained_policy import load_trained_policy, policy_form
-from tasks.training import run_train
-from tasks.workspace import Workspace
+from capvector.core.adapters import lora_sp
+from capvector.core.adapters.lora import LoraConfig
+from capvector.core.adapters.lora_sp import LoraSPConfig
+from capvector.core.evaluation.rollouts import EvalConfig
+from capvector.core.policies.base import Policy, build_policy, load_policy, save_policy
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps import evaluation
+from capvector.tasks.steps.training import run_train
+from capvector.tasks.trained_policy import load_trained_policy, policy_form
 from tests.test_trainer import TINY, make_dataset, quick
 
 TARGETS = ["mlp.fc*"]

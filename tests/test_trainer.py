@@ -13,11 +13,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from capvector_core.batching import SampleTable
-from capvector_core.demos import DatasetMeta, DemoDataset
-from capvector_core.policies import L1ChunkConfig, L1ChunkPolicy
-from capvector_core.policy import build_policy, load_policy
-from capvector_core.trainer import AuxConfig, TrainConfig, lr_at, train
+from capvector.core.policies import L1ChunkConfig, L1ChunkPolicy
+from capvector.core.policies.base import build_policy, load_policy
+from capvector.core.simulation.demos import DatasetMeta, DemoDataset
+from capvector.core.training.batching import SampleTable
+from capvector.core.training.trainer import AuxConfig, TrainConfig, lr_at, train
 
 TINY = dict(d_model=32, n_layers=2, n_heads=4, chunk_size=4, vocab_size=64, max_instruction_tokens=6)
 REPO = Path(__file__).resolve().parents[1]
@@ -72,7 +72,7 @@ def curve(path) -> list[dict]:
 
 
 def test_progress_reports_each_logged_step_with_its_loss(tmp_path):
-    """The trainer only reports; tasks.progress decides where the lines go."""
+    """The trainer only reports; capvector.tasks.runtime.progress decides where the lines go."""
     calls = []
     policy = L1ChunkPolicy(L1ChunkConfig(**TINY))
     train(policy, make_dataset(), quick(steps=20, log_every=5), tmp_path, progress=lambda *a: calls.append(a))
@@ -205,8 +205,8 @@ RUNNER = textwrap.dedent(
     import sys, torch
     sys.path.insert(0, {tests!r})
     from test_trainer import TINY, make_dataset, quick
-    from capvector_core.policy import build_policy
-    from capvector_core.trainer import AuxConfig, train
+    from capvector.core.policies.base import build_policy
+    from capvector.core.training.trainer import AuxConfig, train
     torch.set_num_threads(1)
     torch.manual_seed(1)
     policy = build_policy({{"type": sys.argv[2], "dropout": 0.1, **TINY}}, "cpu")

@@ -14,14 +14,14 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from artifacts import store as store_mod
-from artifacts.errors import CorruptArtifact
-from capvector_core import safetensors_io, vector_ops
-from capvector_core.safetensors_io import Checkpoint, CheckpointError
-from capvector_core.vector_ops import VectorOpError
-from tasks import vector_commands
-from tasks.vector_commands import extract_cli, merge_cli, stats_cli
-from tasks.workspace import Workspace
+from capvector.artifacts import store as store_mod
+from capvector.artifacts.errors import CorruptArtifact
+from capvector.core.vectors import safetensors_io, vector_ops
+from capvector.core.vectors.safetensors_io import Checkpoint, CheckpointError
+from capvector.core.vectors.vector_ops import VectorOpError
+from capvector.tasks import vector_commands
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.vector_commands import extract_cli, merge_cli, stats_cli
 
 REPO = Path(__file__).resolve().parent.parent
 SHAPES = {"a.weight": (64, 32), "a.bias": (64,), "b.weight": (16, 64)}
@@ -219,8 +219,8 @@ def test_vector_commands_do_not_import_torch(user):
 import sys
 sys.path.insert(0, {str(REPO)!r})
 from pathlib import Path
-from tasks.vector_commands import extract_cli, merge_cli
-from tasks.workspace import Workspace
+from capvector.tasks.vector_commands import extract_cli, merge_cli
+from capvector.tasks.runtime.workspace import Workspace
 ws, folder = Workspace({workspace.home!r}), Path({str(folder)!r})
 g = extract_cli(ws, {str(p["ao"])!r}, {str(p["ft"])!r}, folder / "g.safetensors", None, None, None)
 merge_cli(ws, {str(p["pt"])!r}, [(g.id, 1.1)], folder / "m.safetensors", None, None, False)

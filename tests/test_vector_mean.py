@@ -15,12 +15,12 @@ import torch
 from conftest import run_cli
 from typer.testing import CliRunner
 
-from capvector_core import vector_ops
-from capvector_core.safetensors_io import Checkpoint, write_checkpoint
-from capvector_core.vector_ops import VectorOpError, extract, mean
-from flows.cli import app
-from tasks.vector_commands import mean_cli
-from tasks.workspace import Workspace
+from capvector.core.vectors import vector_ops
+from capvector.core.vectors.safetensors_io import Checkpoint, write_checkpoint
+from capvector.core.vectors.vector_ops import VectorOpError, extract, mean
+from capvector.flows.cli.main import app
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.vector_commands import mean_cli
 
 
 def _write(folder: Path, name: str, tensors: dict, sharded: bool = False, metadata=None) -> Path:
@@ -395,8 +395,8 @@ def test_cli_mean_does_not_import_torch(tmp_path):
     code = f"""
 import sys
 from pathlib import Path
-from tasks.vector_commands import mean_cli
-from tasks.workspace import Workspace
+from capvector.tasks.vector_commands import mean_cli
+from capvector.tasks.runtime.workspace import Workspace
 ws = Workspace({str(tmp_path / "home")!r})
 mean_cli(ws, {draws!r}, Path({str(folder / "m.safetensors")!r}))
 mean_cli(ws, {draws!r}, Path({str(folder / "t.safetensors")!r}), "ties", 0.5)

@@ -11,10 +11,10 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from capvector_core import vector_ops
-from capvector_core.policy import CONFIG_METADATA_KEY, build_policy, load_policy, save_policy
-from capvector_core.safetensors_io import Checkpoint, CheckpointError, write_checkpoint
-from capvector_core.vector_ops import VectorOpError, extract, merge, select_names, stats
+from capvector.core.policies.base import CONFIG_METADATA_KEY, build_policy, load_policy, save_policy
+from capvector.core.vectors import vector_ops
+from capvector.core.vectors.safetensors_io import Checkpoint, CheckpointError, write_checkpoint
+from capvector.core.vectors.vector_ops import VectorOpError, extract, merge, select_names, stats
 
 
 def _random_ckpt(dtype, seed, shift=0.0):
@@ -304,7 +304,7 @@ def _count(workspace) -> int:
 @pytest.fixture
 def user(tmp_path):
     """A user's folder of checkpoints (θ_pt, θ_ft, θ_ao and broken ones) and an empty home."""
-    from tasks.workspace import Workspace
+    from capvector.tasks.runtime.workspace import Workspace
 
     folder = tmp_path / "user"
     folder.mkdir()
@@ -318,7 +318,7 @@ def user(tmp_path):
 
 
 def test_failed_vector_commands_register_none_of_their_inputs(user):
-    from tasks.vector_commands import extract_cli, merge_cli, stats_cli
+    from capvector.tasks.vector_commands import extract_cli, merge_cli, stats_cli
 
     workspace, folder, p = user
     before = sorted(folder.iterdir())
@@ -342,7 +342,7 @@ def test_failed_vector_commands_register_none_of_their_inputs(user):
 
 
 def test_vector_commands_register_inputs_and_output_once_they_succeed(user):
-    from tasks.vector_commands import extract_cli, stats_cli
+    from capvector.tasks.vector_commands import extract_cli, stats_cli
 
     workspace, folder, p = user
     out = folder / "gamma.safetensors"
@@ -359,8 +359,8 @@ def test_vector_commands_register_inputs_and_output_once_they_succeed(user):
 @pytest.mark.parametrize("sharded", [False, True])
 def test_identical_rerun_registers_an_output_written_but_never_registered(user, sharded):
     """Killed between writing `-o` and registering it: the same command again registers that output."""
-    from tasks.vector_commands import extract_cli, merge_cli
-    from tasks.workspace import Workspace
+    from capvector.tasks.runtime.workspace import Workspace
+    from capvector.tasks.vector_commands import extract_cli, merge_cli
 
     workspace, folder, p = user
     out = folder / ("gamma" if sharded else "gamma.safetensors")
@@ -381,7 +381,7 @@ def test_identical_rerun_registers_an_output_written_but_never_registered(user, 
 
 
 def test_an_existing_output_with_other_bytes_is_still_refused(user):
-    from tasks.vector_commands import extract_cli
+    from capvector.tasks.vector_commands import extract_cli
 
     workspace, folder, p = user
     out = folder / "gamma.safetensors"
@@ -409,9 +409,9 @@ def test_a_command_killed_while_writing_leaves_nothing_in_the_users_folder(user,
     code = f"""
 import os, sys
 sys.path.insert(0, {str(Path(__file__).resolve().parent.parent)!r})
-from capvector_core import vector_ops
-from tasks.vector_commands import extract_cli
-from tasks.workspace import Workspace
+from capvector.core.vectors import vector_ops
+from capvector.tasks.vector_commands import extract_cli
+from capvector.tasks.runtime.workspace import Workspace
 from pathlib import Path
 
 calls = []
@@ -520,7 +520,7 @@ THREADED = """
 import hashlib, json, sys
 import torch
 torch.set_num_threads(int(sys.argv[1]))
-from capvector_core import vector_ops
+from capvector.core.vectors import vector_ops
 v, base, ref, null = sys.argv[2:6]
 rows = vector_ops.stats(v, base=base, reference_vector=ref)
 vector_ops.null_vector(v, null, seed=3)

@@ -14,8 +14,8 @@ import torch
 import torch.nn.functional as F
 from pydantic import Field
 
-from capvector_core.policies.token_backbone import ActionHead, TokenBackboneConfig, TokenPolicy
-from capvector_core.policy import Batch, PolicyOutput, register_policy
+from capvector.core.policies.base import Batch, PolicyOutput, register_policy
+from capvector.core.policies.token_backbone import ActionHead, TokenBackboneConfig, TokenPolicy
 
 
 class L1ChunkConfig(TokenBackboneConfig):

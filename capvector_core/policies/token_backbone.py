@@ -32,10 +32,10 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator, model_validator
 from torch import nn
 
-from capvector_core import tokenizer
-from capvector_core.batching import DemoBatcher
-from capvector_core.obs_transforms import ObsTransform, ObsTransformConfig
-from capvector_core.policy import Batch, Batcher, FeatureSpec, Policy, PolicyConfig
+from capvector.core.policies import tokenizer
+from capvector.core.policies.base import Batch, Batcher, FeatureSpec, Policy, PolicyConfig
+from capvector.core.simulation.obs_transforms import ObsTransform, ObsTransformConfig
+from capvector.core.training.batching import DemoBatcher
 
 STATE_GROUPS: dict[str, tuple[int, int]] = {
     "hand": (0, 4),
@@ -81,7 +81,7 @@ class TokenBackboneConfig(PolicyConfig):
     obs_transform: ObsTransformConfig = Field(
         default_factory=ObsTransformConfig,
         description="fixed map of the standardized state before the state tokens "
-        "(capvector_core.obs_transforms)",
+        "(capvector.core.simulation.obs_transforms)",
     )
 
     @field_validator("stem_channels")
@@ -457,7 +457,9 @@ class TokenPolicy(Policy):
 
     def tokens_for(self, task_names: list[str]) -> torch.Tensor:
         if not self._instruction_tokens:
-            from capvector_core.metaworld_tasks import INSTRUCTIONS  # lazy: keeps policies usable alone
+            from capvector.core.simulation.metaworld_tasks import (
+                INSTRUCTIONS,  # lazy: keeps policies usable alone
+            )
 
             self.set_instructions(INSTRUCTIONS)
         unknown = sorted({t for t in task_names if t not in self._instruction_tokens})

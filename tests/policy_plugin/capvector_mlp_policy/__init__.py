@@ -2,7 +2,7 @@
 
 It exists to prove the plugin path: registered through the `capvector.policies` entry point (see the
 dist-info beside this package), it is trained, merged, regularized and evaluated by `capvector run`
-with nothing in capvector changed. It uses only the public interface (`capvector_core.policy`) and
+with nothing in capvector changed. It uses only the public interface (`capvector.core.policies.base`) and
 the shared batching helper.
 """
 
@@ -16,9 +16,9 @@ import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
-from capvector_core import tokenizer
-from capvector_core.batching import DemoBatcher
-from capvector_core.policy import FeatureSpec, Policy, PolicyConfig, PolicyOutput, register_policy
+from capvector.core.policies import tokenizer
+from capvector.core.policies.base import FeatureSpec, Policy, PolicyConfig, PolicyOutput, register_policy
+from capvector.core.training.batching import DemoBatcher
 
 
 class MLPConfig(PolicyConfig):
@@ -93,7 +93,7 @@ class MLPPolicy(Policy):
 
     @torch.no_grad()
     def predict_action_chunk(self, obs, task_names: list[str]) -> np.ndarray:
-        from capvector_core.metaworld_tasks import INSTRUCTIONS
+        from capvector.core.simulation.metaworld_tasks import INSTRUCTIONS
 
         tokens = tokenizer.encode_batch([INSTRUCTIONS[t] for t in task_names], self.config.vocab_size, 12)
         batch = {k: torch.as_tensor(np.asarray(obs[k])).to(self.device) for k in ("state", "proprio")}

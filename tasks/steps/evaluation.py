@@ -1,0 +1,143 @@
+"""Step: evaluate a checkpoint on Meta-World under one protocol and record every episode."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from capvector.artifacts.scores import read_scores
+from capvector.core.evaluation.rollouts import EvalConfig, EvalResult, evaluate
+from capvector.tasks.runtime.caching import cached_step
+from capvector.tasks.runtime.prefect_task import artifact_key, pipeline_task
+from capvector.tasks.runtime.progress import progress_printer
+from capvector.tasks.runtime.workspace import Workspace, provenance
+from capvector.tasks.trained_policy import load_trained_policy
+
+VIDEO_KIND = "video"
+"""A rollout GIF, registered with its evaluation as parent (role `of`)."""
+
+
+def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, Any]) -> dict[str, Any]:
+    """The store's evaluation document (capvector.artifacts.records.EvaluationDoc) from a core EvalResult.
+
+    Its content, hence its id: what the checkpoint, the protocol and the library versions determine,
+    nothing else. When it ran, how long it took, where videos were written are provenance and go into
+    the record's config (its sidecar), never here, so one evaluation run twice has one id. Its scores
+    are not in the sidecar either: the catalogue derives them from these episodes
+    (capvector.artifacts.scores)."""
+    return {
+        "checkpoint_id": checkpoint_id,
+        "fingerprint": result.fingerprint,
+        "library_versions": {**versions, **result.versions},
+        "episodes": [
+            {
+                "task": e.task,
+                "seed": e.seed,
+                "success": e.success,
+                "steps": e.steps,
+                "return": e.episode_return,
+            }
+            for e in result.episodes
+        ],
+    }
+
+
+def evaluate_checkpoint(
+    workspace: Workspace, step: str, checkpoint_id: str, config: dict[str, Any], cache_key: str | None = None
+) -> str:
+    """Run the rollouts now (no cache) and register the evaluation; returns its artifact id."""
+    eval_config = EvalConfig.model_validate(config)
+    policy, form = load_trained_policy(workspace, checkpoint_id, device="auto")
+    with workspace.scratch() as video_dir:
+        result = evaluate(
+            policy.predict_action_chunk, eval_config, progress_printer(step, "episodes"), video_dir=video_dir
+        )
+        record = _register(workspace, step, checkpoint_id, eval_config, result, form, cache_key)
+        videos = {
+            name: workspace.api.register_file(
+                path, VIDEO_KIND, f"{step}: {name}", parents=[(record.id, "of")]
+            )
+            for name, path in sorted(result.videos.items())
+        }
+    from prefect.artifacts import create_markdown_artifact, create_table_artifact  # only when it ran
+
+    (scores,) = read_scores(workspace.api, evaluations=[record.id])  # as every other reader sees them
+    create_table_artifact(  # keyed by the step, so the UI shows an arm's (draw's, seed's) history
+        table=[{"task": t, "success_rate": r} for t, r in sorted(scores.success_rates.items())],
+        key=artifact_key(f"evaluation {step}"),
+        description=f"{step}: evaluation {record.id[:12]} of checkpoint {checkpoint_id[:12]}, protocol "
+        f"{result.fingerprint[:12]}",
+    )
+    if videos:
+        links = "\n".join(
+            f"- {name}: `{v.id[:12]}` ({workspace.api.path(v.id)})" for name, v in videos.items()
+        )
+        create_markdown_artifact(
+            markdown=f"Rollout videos of {step}:\n\n{links}\n", key=artifact_key(f"videos {step}")
+        )
+    return record.id
+
+
+def videos_of(workspace: Workspace, evaluation_ids: list[str]) -> dict[str, list[tuple[str, str]]]:
+    """Evaluation id -> [(video name, path)] of the rollout videos registered with it."""
+    if not evaluation_ids:
+        return {}
+    marks = ", ".join("?" for _ in evaluation_ids)
+    _, rows = workspace.api.query_rows(
+        f"SELECT e.parent, a.id, a.name FROM edges e JOIN artifacts a ON a.id = e.child "
+        f"WHERE a.kind = '{VIDEO_KIND}' AND e.parent IN ({marks}) ORDER BY a.name",
+        list(evaluation_ids),
+    )
+    found: dict[str, list[tuple[str, str]]] = {}
+    for parent, video, name in rows:
+        found.setdefault(parent, []).append((name, str(workspace.api.path(video))))
+    return found
+
+
+def _register(
+    workspace: Workspace,
+    step: str,
+    checkpoint_id: str,
+    eval_config: EvalConfig,
+    result: EvalResult,
+    form: Any,
+    cache_key: str | None,
+) -> Any:
+    meta = provenance()
+    record = workspace.api.register_evaluation(
+        evaluation_doc(workspace.api.get(checkpoint_id).id, result, meta["library_versions"]),
+        name=step,
+        config={
+            "eval": eval_config.model_dump(mode="json"),
+            "policy_form": form.model_dump(mode="json"),
+            "protocol": result.protocol,
+            "wall_time_s": result.wall_time_s,
+            "env_steps": result.env_steps,
+            "cache_key": cache_key,
+        },
+        **meta,
+    )
+    return record
+
+
+def run_evaluate(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    if "checkpoint" not in inputs:
+        raise ValueError(f"step {step!r}: evaluate needs a 'checkpoint' input")
+    eval_config = EvalConfig.model_validate(config)  # fail before any cache lookup on a bad protocol
+    return cached_step(
+        workspace,
+        "evaluate",
+        inputs,
+        eval_config,
+        lambda key: evaluate_checkpoint(workspace, step, inputs["checkpoint"], config, cache_key=key),
+    )
+
+
+@pipeline_task("evaluate")
+def evaluate_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_evaluate(Workspace(home), step, inputs, config)
+
+
+@pipeline_task("reevaluate", content_cached=False)
+def reevaluate_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    """Always re-runs: the cache key has a fresh nonce unless this exact run already landed."""
+    return evaluate_checkpoint(Workspace(home), step, inputs["checkpoint"], config)

@@ -1,0 +1,285 @@
+"""Step: train a policy (pretraining, standard or auxiliary SFT, downstream fine-tuning) into a checkpoint.
+
+One step covers every training stage of the recipe; what differs is the config (aux objective,
+adapter, orthogonal regularizer) and the inputs (`data`, optional `init` checkpoint, optional
+`vector` γ for the regularizer). The checkpoint artifact holds dense weights only (LoRA runs are
+merged), so vectors can be taken from any of them; its record keeps the loss curve and run summary,
+and a LoRA/LoRA-SP adapter is a separate artifact, its parent with role `adapter`. The checkpoint
+is registered last: it is the step's commit point.
+
+Where it trained is provenance, not part of the cache key (capvector.core.training.execution): the records of
+the checkpoint, its snapshots and its adapter hold `execution`, what the training invocation that
+finished the run used (capvector.core.training.device.run_environment): the resolved device (`cpu`, `cuda:0`,
+never `auto`), its name, torch's CPU thread count, the torch build and whether CUDA was available. A
+run resumed from another invocation's checkpoint says so in `summary.resumed_from_step`; that
+invocation may have run on another machine (capvector.tasks.runtime.scratch: resume checkpoints are copied to
+a shared
+scratch URL, by default `<home>/scratch` for a remote home, and fetched by the next run).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from capvector.core.adapters import lora
+from capvector.core.adapters.lora import LoraConfig
+from capvector.core.adapters.lora_sp import LoraSPConfig
+from capvector.core.policies.base import AnyPolicyConfig, Policy, build_policy, load_policy, save_policy
+from capvector.core.simulation.demos import DemoDataset
+from capvector.core.training.orthogonal import OrthogonalRegularizer
+from capvector.core.training.trainer import TrainConfig, train
+from capvector.tasks.adapters import ADAPTERS
+from capvector.tasks.runtime.caching import cached_step, selected_by
+from capvector.tasks.runtime.prefect_task import pipeline_task
+from capvector.tasks.runtime.progress import progress_printer
+from capvector.tasks.runtime.workspace import Workspace, provenance, workspace_for
+
+CALIBRATION_BATCHES = 8
+
+
+class OrthogonalSettings(BaseModel):
+    """λ·Σ|γ ⊙ Δ'|; `mode` for adapters: `lora_exact` (B·A materialised) or `lora_a` (A only)."""
+
+    model_config = ConfigDict(extra="forbid")
+    weight: float = Field(
+        1e-4,
+        allow_inf_nan=False,
+        description="λ (or λ's multiple, see scale); larger: downstream updates kept further off γ, 0: "
+        "no penalty. Chosen by `sweep` (sweep.lambdas); a study uses study.lambda_scales",
+    )
+    scale: Literal["absolute", "action_gradient"] = Field(
+        "absolute",
+        description="`absolute`: λ = weight (the paper's 1e-4 was tuned on a 7B model, where Σ|γ·Δ| is far "
+        "larger); `action_gradient`: λ = weight × ‖∇ action loss‖ / ‖γ‖ at θ_meta before training, so "
+        "weight 1 means a gradient as large as the action loss's on any model (full fine-tuning only; "
+        "a study always uses it)",
+    )
+    lora_mode: Literal["lora_exact", "lora_a"] = Field(
+        "lora_exact",
+        description="adapter arms: `lora_exact` penalises each adapter's dense update B·A against γ; "
+        "`lora_a` the cheaper projection of γ on A only",
+    )
+    include: list[str] | None = Field(
+        None,
+        description="γ tensors the penalty covers, by name (module_patterns syntax); null: all of them",
+    )
+    exclude: list[str] | None = Field(
+        None, description="γ tensors left out of the penalty (module_patterns syntax); null: none"
+    )
+
+
+class TrainStepConfig(BaseModel):
+    """Everything that decides a trained checkpoint besides its input artifacts."""
+
+    model_config = ConfigDict(extra="forbid")
+    policy: AnyPolicyConfig | None = None  # only for training from scratch (no `init` input)
+    train: TrainConfig
+    adapter: Literal[tuple(ADAPTERS)] = "full"  # type: ignore[valid-type]  # capvector.tasks.adapters: the registry
+    lora: LoraConfig | None = None
+    lora_sp: LoraSPConfig | None = None
+    orthogonal: OrthogonalSettings | None = None
+
+    @model_validator(mode="after")
+    def _adapter_config_present(self) -> TrainStepConfig:
+        form = ADAPTERS[self.adapter]
+        if form.section and form.settings(self) is None:
+            raise ValueError(f"adapter {self.adapter!r} needs a `{self.adapter}` config")
+        return self
+
+
+def _initial_policy(workspace: Workspace, cfg: TrainStepConfig, init_id: str | None) -> Policy:
+    """θ from `init`, or a fresh model whose initialisation depends on the training seed alone."""
+    torch.manual_seed(cfg.train.seed)  # also seeds adapter initialisation, which follows
+    if init_id is None:
+        if cfg.policy is None:
+            raise ValueError("training from scratch (no `init` checkpoint) needs a `policy` config")
+        return build_policy(cfg.policy, device=cfg.train.device)
+    return load_policy(workspace.path(init_id), device=cfg.train.device)
+
+
+def _orthogonal(
+    workspace: Workspace, model: Policy, cfg: TrainStepConfig, inputs: dict[str, str]
+) -> OrthogonalRegularizer | None:
+    if cfg.orthogonal is None:
+        return None
+    if "vector" not in inputs or "init" not in inputs:
+        raise ValueError("the orthogonal regularizer needs inputs `vector` (γ) and `init` (θ_meta)")
+    settings = cfg.orthogonal
+    mode = ADAPTERS[cfg.adapter].orthogonal_mode(settings.lora_mode)
+    if settings.scale == "action_gradient" and mode != "dense":
+        raise ValueError("orthogonal.scale 'action_gradient' needs full fine-tuning (adapter 'full')")
+    return OrthogonalRegularizer(
+        model,
+        workspace.path(inputs["vector"]),
+        workspace.path(inputs["init"]) if mode == "dense" else None,
+        weight=settings.weight,
+        include=settings.include,
+        exclude=settings.exclude,
+        mode=mode,
+    )
+
+
+def action_gradient_scale(
+    model: Policy, dataset: DemoDataset, regularizer: OrthogonalRegularizer, seed: int, batch_size: int
+) -> float:
+    """‖∇ action loss‖ / ‖γ‖ over the regularized tensors, at the model as training starts.
+
+    The regularizer's gradient is λ·γ ⊙ sign(θ − θ_meta), of norm λ·‖γ‖ once every Δ is non-zero; the
+    action loss's gradient norm is averaged over a few training batches (a fixed generator: no RNG state
+    of the run is used).
+    """
+    params = regularizer.dense_parameters(model)
+    norms = []
+    for batch in _calibration_batches(model, dataset, seed, batch_size):
+        loss = torch.stack(list(model.compute_loss(batch).terms.values())).sum()
+        grads = torch.autograd.grad(loss, params, allow_unused=True)
+        norms.append(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads if g is not None])))
+    gamma = regularizer.gamma_norm()
+    if gamma == 0:
+        raise ValueError("γ is zero on every regularized tensor: no orthogonal loss can be scaled to it")
+    return float(torch.stack(norms).mean()) / gamma
+
+
+def _calibration_batches(
+    model: Policy, dataset: DemoDataset, seed: int, batch_size: int = 256
+) -> list[dict[str, torch.Tensor]]:
+    """Batches from the training data (LoRA-SP's dense merge, the orthogonal loss's scale)."""
+    n, make_batch = model.make_batcher(dataset, model.device)
+    generator = torch.Generator().manual_seed(seed)
+    return [
+        make_batch(torch.randint(0, n, (min(batch_size, n),), generator=generator))
+        for _ in range(CALIBRATION_BATCHES)
+    ]
+
+
+def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    cfg = TrainStepConfig.model_validate(config)
+    form = ADAPTERS[cfg.adapter]
+    if cfg.train.snapshot_steps and not form.snapshots:
+        raise ValueError(f"step {step!r}: train.snapshot_steps needs full fine-tuning (adapter 'full')")
+    if "data" not in inputs:
+        raise ValueError(f"step {step!r}: training needs a `data` input (a dataset artifact id)")
+
+    def produce(key: str) -> str:
+        dataset = DemoDataset.load(workspace.path(inputs["data"]))
+        model = _initial_policy(workspace, cfg, inputs.get("init"))
+        form.apply(model, cfg)
+        extra: dict[str, Any] = {}
+        regularizer = _orthogonal(workspace, model, cfg, inputs)
+        lam = {}
+        if regularizer is not None:
+            if cfg.orthogonal.scale == "action_gradient":
+                scale = action_gradient_scale(
+                    model, dataset, regularizer, cfg.train.seed, cfg.train.batch_size
+                )
+                regularizer.weight = cfg.orthogonal.weight * scale
+                lam["gradient_ratio"] = scale  # ‖∇ action loss‖/‖γ‖ at the start: λ = weight × this
+            lam["orthogonal_lambda"] = regularizer.weight
+            extra["orthogonal"] = regularizer
+        extra |= form.extra_losses()
+        trainable = lora.trainable_parameter_count(model)
+        run_dir = workspace.run_dir(key)
+        mirror = workspace.checkpoint_mirror(key)
+        on_checkpoint = None
+        # capvector.tasks.runtime.scratch: resume from another machine's checkpoint, copy ours
+        if mirror is not None:
+            mirror.restore(run_dir)
+            on_checkpoint = functools.partial(mirror.save, run_dir=run_dir)
+        result = train(
+            model,
+            dataset,
+            cfg.train,
+            run_dir,
+            extra_losses=extra,
+            progress=progress_printer(step, "steps"),
+            on_checkpoint=on_checkpoint,
+        )
+
+        summary = {
+            "step": step,
+            "steps": result.steps,
+            "steps_per_s": result.steps_per_s,
+            "samples_per_s": result.samples_per_s,
+            "final_loss": result.final_loss,
+            "resumed_from_step": result.resumed_from_step,
+            "trainable_parameters": trainable,
+            "adapter": cfg.adapter,
+            **lam,
+        }
+        with workspace.scratch() as tmp:
+            calibration = lambda: _calibration_batches(model, dataset, cfg.train.seed)  # noqa: E731
+            adapter_dir = form.finish(model, tmp / "adapter", calibration, summary)
+            weights = save_policy(model, tmp / "model.safetensors", {"capvector.step": step})
+            parents = [(inputs["data"], "data")]
+            if "init" in inputs:
+                parents.append((inputs["init"], "init"))
+            if "vector" in inputs:
+                parents.append((inputs["vector"], "regularized_by"))
+            parents += selected_by(inputs)
+            meta = provenance()
+            if adapter_dir is not None:  # first: the checkpoint (the commit point) names it as a parent
+                adapter = workspace.api.register_dir(
+                    adapter_dir,
+                    kind="adapter",
+                    name=f"{step} adapter",
+                    config={"adapter": cfg.adapter, "summary": summary, "execution": result.execution},
+                    parents=parents,
+                    **meta,
+                )
+                parents.append((adapter.id, "adapter"))
+            snapshots = {}
+            for budget, path in result.snapshots.items():  # before the checkpoint, which names them
+                snapshot = workspace.api.register_file(
+                    path,
+                    kind="checkpoint",
+                    name=f"{step} @ {budget} steps",
+                    config={
+                        "train_step": cfg.model_dump(mode="json"),
+                        "budget": budget,
+                        "of_run": key,
+                        "execution": result.execution,
+                    },
+                    parents=parents,
+                    **meta,
+                )
+                snapshots[str(budget)] = snapshot.id
+            record_config = {
+                "train_step": cfg.model_dump(mode="json"),
+                "cache_key": key,
+                "summary": summary,
+                "execution": result.execution,
+                "curve": _curve_rows(result.loss_curve_path),
+                "snapshots": snapshots,
+            }
+            parents += [(i, "snapshot", {"budget": int(b)}) for b, i in snapshots.items()]
+            checkpoint = workspace.api.register_file(
+                weights, kind="checkpoint", name=step, config=record_config, parents=parents, **meta
+            )
+        workspace.finish_run_dir(key)
+        return checkpoint.id
+
+    return cached_step(workspace, "train", inputs, cfg, produce, step=step)
+
+
+def snapshots_of(workspace: Workspace, checkpoint_id: str) -> dict[int, str]:
+    """Budget (steps) -> id of the checkpoint a training run kept at that budget; the final one included."""
+    record = workspace.api.get(checkpoint_id)
+    found = {int(b): i for b, i in (record.config or {}).get("snapshots", {}).items()}
+    found[record.config["train_step"]["train"]["steps"]] = record.id
+    return dict(sorted(found.items()))
+
+
+def _curve_rows(path: Path) -> list[dict[str, Any]]:
+    """The loss curve (one JSON row per logged step), kept in the checkpoint's record."""
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+@pipeline_task("train")
+def train_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+    return run_train(workspace_for(home), step, inputs, config)
