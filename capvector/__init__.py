@@ -4,4 +4,42 @@ Installed, every part of the project lives under this one name: `capvector.core`
 policies, training, evaluation, vector arithmetic), `capvector.stats` (a study's statistics),
 `capvector.artifacts` (the store and the DuckDB catalogue), `capvector.tasks` (cached steps) and
 `capvector.flows` (flows and the `capvector` command line). Importing this package imports none of them.
+
+In a checkout the design keeps those folders at the repository's top level (`capvector_core/`, `flows/`,
+…); a wheel puts them under `capvector/` (pyproject's package-dir). The finder below maps the five names
+onto the folders beside this package, so that any checkout (a git worktree, a CI clone) imports its own
+code rather than wherever an editable install points.
 """
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+_FOLDERS = {
+    "capvector.core": "capvector_core",
+    "capvector.stats": "capvector_stats",
+    "capvector.artifacts": "artifacts",
+    "capvector.tasks": "tasks",
+    "capvector.flows": "flows",
+}
+_CHECKOUT = Path(__file__).resolve().parent.parent
+
+
+class _CheckoutFinder:
+    """Finds `capvector.<part>` in the checkout's top-level folder; deeper modules follow its __path__."""
+
+    @staticmethod
+    def find_spec(fullname, path=None, target=None):
+        folder = _FOLDERS.get(fullname)
+        if folder is None:
+            return None
+        location = _CHECKOUT / folder
+        return importlib.util.spec_from_file_location(
+            fullname, location / "__init__.py", submodule_search_locations=[str(location)]
+        )
+
+
+if not (Path(__file__).parent / "core").is_dir() and (_CHECKOUT / "capvector_core").is_dir():
+    sys.meta_path.insert(0, _CheckoutFinder())
