@@ -37,9 +37,10 @@ class Arm(BaseModel):
     """One downstream fine-tuning recipe: where it starts and what it adds to standard SFT.
 
     init: θ_pt, θ_meta = θ_pt + α·γ, the null control θ_pt + α·γ_null (`null_meta`, regularized with
-    γ_null), or one of the extraction checkpoints θ_ao (`auxiliary`) and θ_ft (`standard`)."""
+    γ_null), a study's dose θ_pt + α_dose·γ (`dose_meta`), or one of the extraction checkpoints θ_ao
+    (`auxiliary`) and θ_ft (`standard`)."""
 
-    init: Literal["pretrained", "meta", "null_meta", "auxiliary", "standard"]
+    init: Literal["pretrained", "meta", "null_meta", "dose_meta", "auxiliary", "standard"]
     aux: bool = False
     orthogonal: bool = False
     adapter: Literal["full", "lora", "lora_sp"] = "full"
@@ -57,6 +58,7 @@ ARMS: dict[str, Arm] = {
     # The study's controls (capvector.flows.study.plan): they need a null vector and the extraction
     # checkpoints per draw.
     "null_capvector": Arm(init="null_meta", orthogonal=True),
+    "meta_sft_dose": Arm(init="dose_meta"),
     "sft_from_ao": Arm(init="auxiliary"),
     "sft_from_ft": Arm(init="standard"),
 }

@@ -17,12 +17,14 @@ from capvector.core.simulation.demos import UNIT_SEEDS, DemoConfig
 from capvector.flows.recipe.config import PipelineConfig, load_config
 from capvector.tasks.steps.training import TrainStepConfig
 
-StudyArm = Literal["sft", "aux", "meta_sft", "capvector", "null_capvector", "sft_from_ao", "sft_from_ft"]
+StudyArm = Literal[
+    "sft", "aux", "meta_sft", "meta_sft_dose", "capvector", "null_capvector", "sft_from_ao", "sft_from_ft"
+]
 SHARED_ARMS = ("sft", "aux")
 """Arms that start from θ_pt: one run per training seed, shared by every γ draw."""
 GATE_ARMS: tuple[StudyArm, ...] = ("sft", "aux", "sft_from_ao", "sft_from_ft")
 """Arms that test the preconditions; the others run only when the gate passes."""
-ALL_ARMS: tuple[StudyArm, ...] = (
+ALL_ARMS: tuple[StudyArm, ...] = (  # the default arms; `meta_sft_dose` runs only where a preset asks
     "sft",
     "aux",
     "meta_sft",
@@ -46,6 +48,9 @@ class StudySettings(BaseModel):
         tuning_seeds: seeds of the runs values are chosen from (never a compared run's seed or draw);
             a cell's score is its mean validation success over them, so with 2 or more one lucky
             tuning run cannot pick a value.
+        tuning_vector_draws: extraction draws whose mean γ̄_tune is the vector every α × λ tuning run
+            merges and regularizes with (no compared arm uses them); empty: each tuning seed's own γ
+            from the extraction grid's runs. One γ is mostly seed noise: tuning λ on it tunes on noise.
         extraction_lrs: θ_ft's lr grid, chosen on D_ext validation goals (ties: lower held-out loss).
         extraction_aux_weights: θ_ao's auxiliary-weight grid, chosen on D_ext validation goals (ties:
             lower held-out action loss): γ comes from the strongest objective the extraction set
@@ -55,7 +60,10 @@ class StudySettings(BaseModel):
             second half of the extraction run.
         non_inferiority_margin: points; θ_meta is "not worse" than θ_pt when the CI's low end is above
             −margin.
-        alphas: merge coefficients of the α × λ grid (default 0.5–2: the paper's best was 1.1).
+        alphas: merge coefficients of the α × λ grid (default 0.5–2: the paper's best was 1.1); one value
+            fixes α and tunes λ alone.
+        dose_alpha: the merge coefficient of the `meta_sft_dose` arm (θ_pt + dose_alpha·γ, plain SFT):
+            beside θ_meta at the chosen α it separates "too little signal" from "not additive".
         lambda_scales: λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (capvector.tasks.steps.training:
         orthogonal.scale);
             0 (θ_meta without the loss) is in the default grid, so the loss has to earn its place.
@@ -77,6 +85,7 @@ class StudySettings(BaseModel):
     draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
     draws_per_replicate: int = Field(1, ge=1)
     tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001], min_length=1)
+    tuning_vector_draws: list[NonNegativeInt] = Field(default_factory=list)
     extraction_lrs: list[float] = Field(min_length=1)
     extraction_aux_weights: list[float] = Field(min_length=1)
     heldout_episodes: int = Field(5, ge=1)
@@ -85,6 +94,7 @@ class StudySettings(BaseModel):
     alphas: list[float] = Field(default_factory=lambda: [0.5, 1.0, 1.5, 2.0], min_length=1)
     lambda_scales: list[float] = Field(default_factory=lambda: [0.0, 0.1, 1.0])
     lambdas: list[float] = Field(default_factory=lambda: [1.0e-4])
+    dose_alpha: float | None = Field(None, gt=0)
     aux_weights: list[float] = Field(min_length=1)
     budgets: list[int] = Field(min_length=1)
     arms: list[StudyArm] = Field(default_factory=lambda: list(ALL_ARMS))
@@ -101,7 +111,8 @@ class StudySettings(BaseModel):
                 f"study.aux_weights has {len(self.aux_weights)} values, the α × λ grid {cells} cells: "
                 "the auxiliary arm is tuned on the same budget as CapVector"
             )
-        grids = ("draws", "tuning_seeds", "alphas", "lambda_scales", "lambdas", "aux_weights")
+        grids = ("draws", "tuning_seeds", "tuning_vector_draws", "alphas", "lambda_scales", "lambdas")
+        grids += ("aux_weights",)
         grids += ("extraction_lrs",)
         grids += ("extraction_aux_weights",)
         for name in (*grids, "budgets"):
@@ -123,6 +134,11 @@ class StudySettings(BaseModel):
         twice = sorted({arm for arm in self.arms if self.arms.count(arm) > 1})
         if twice:
             raise ValueError(f"study.arms lists {', '.join(twice)} more than once: each arm is run once")
+        if ("meta_sft_dose" in self.arms) != (self.dose_alpha is not None):
+            raise ValueError("study.dose_alpha and the arm meta_sft_dose go together: set both or neither")
+        shared = sorted(set(self.tuning_vector_draws) & set(self.draws))
+        if shared:
+            raise ValueError(f"study.tuning_vector_draws {shared} are also compared draws")
         missing = {"sft", "capvector"} - set(self.arms)
         if missing:
             raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")

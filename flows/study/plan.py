@@ -284,8 +284,10 @@ def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[st
     }
 
 
-def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, Any]) -> dict[str, Any]:
-    """θ_ft^d and θ_ao^d with the chosen values, γ^d, their D_ext validations."""
+def _draw(
+    study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, Any], compared: bool = True
+) -> dict[str, Any]:
+    """θ_ft^d and θ_ao^d with the chosen values, γ^d, and (for a compared draw) their D_ext validations."""
     cfg, submit = study.cfg, study.submit
     inputs = {
         "data": stage["data"]["extraction"],
@@ -304,13 +306,17 @@ def _draw(study: _Study, d: int, stage: dict[str, Any], extraction: dict[str, An
         {"minuend": ao, "subtrahend": ft, "base": stage["pretrained"]},
         cfg.vector,
     )
-    for which, run in (("ft", ft), ("ao", ao)):
-        validation = submit(
-            evaluate_task, f"validate draw {d} θ_{which} on D_ext", {"checkpoint": run}, study.validation_ext
-        )
-        study.record(ExtractionValidation(which=which, draw=d), validation)
-    study.record(CapabilityVector(draw=d), vector)
-    study.record(StandardRun(draw=d), ft)
+    if compared:
+        for which, run in (("ft", ft), ("ao", ao)):
+            validation = submit(
+                evaluate_task,
+                f"validate draw {d} θ_{which} on D_ext",
+                {"checkpoint": run},
+                study.validation_ext,
+            )
+            study.record(ExtractionValidation(which=which, draw=d), validation)
+        study.record(CapabilityVector(draw=d), vector)
+        study.record(StandardRun(draw=d), ft)
     return {**stage, "standard": ft, "auxiliary": ao, "vector": vector}
 
 
@@ -351,12 +357,9 @@ def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: A
                 study.record(HeldOutLoss(which=which, draw=d, budget=b), loss)
 
 
-def _run_study(study: _Study) -> dict[str, Any]:
-    cfg, s, submit = study.cfg, study.cfg.study, study.submit
-    tunes = s.tuning_seeds
-    arms = s.arms
-
-    # Demonstrations and θ_pt.
+def _foundations(study: _Study) -> dict[str, Any]:
+    """Demonstrations and θ_pt: what every run starts from (`data`, `pretrained`)."""
+    cfg, submit = study.cfg, study.submit
     data = {
         split: submit(collect_demos_task, f"demos {split}", {}, cfg.demo_config(split))
         for split in ("pretrain", "extraction", "downstream")
@@ -366,20 +369,20 @@ def _run_study(study: _Study) -> dict[str, Any]:
         collect_demos_task, "demos downstream (held out)", {}, cfg.downstream_heldout_demo_config()
     )
     pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
-    base = {"data": data, "pretrained": pretrained}
     pt_validation = submit(
         evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
     )
     study.record(ExtractionValidation(which="pt", draw=SHARED), pt_validation)
     study.record(Pretrained(), pretrained)
+    return {"data": data, "pretrained": pretrained}
 
-    # Runs that need no choice: SFT, the auxiliary arm's grid (tuning seed).
-    runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
-    for seed in cfg.seeds:
-        runs["sft", SHARED, seed] = submit_arm(
-            study.steps, base, "sft", seed, cfg.study_downstream("sft", seed)
-        )
-    aux_grid = [
+
+def _aux_grid(study: _Study, base: dict[str, Any]) -> list[tuple[float, list[Any]]]:
+    """The downstream auxiliary arm's weight grid, one run per tuning seed and weight."""
+    cfg, s, tunes = study.cfg, study.cfg.study, study.cfg.study.tuning_seeds
+    if "aux" not in s.arms:
+        return []
+    return [
         (
             w,
             [
@@ -394,85 +397,82 @@ def _run_study(study: _Study) -> dict[str, Any]:
                 for t in tunes
             ],
         )
-        for w in (s.aux_weights if "aux" in arms else [])
+        for w in s.aux_weights
     ]
-    for arm in [a for a in SHARED_ARMS if a in arms]:
-        study.test_start(pretrained, arm, SHARED, "θ_pt")
 
-    # Choices for the extraction runs, then every draw's θ_ft, θ_ao, γ and null vector.
-    extraction = _extraction(study, data, pretrained)
-    draws = {d: _draw(study, d, base, extraction) for d in s.draws}
-    units = _units(study, draws)
 
-    # The downstream auxiliary weight, on the same endpoint the study is judged at.
-    chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
-    if aux_grid:
-        cells = [
-            (
-                {"aux_weight": w},
-                [
-                    e
-                    for t, run in zip(tunes, tuning_runs, strict=True)
-                    for e in study.validate_curve(run, _seeded(f"aux weight={w}", t, tunes))
-                ],
-            )
-            for w, tuning_runs in aux_grid
-        ]
-        context = {"seeds": tunes, "endpoint": cfg.curve_budgets}
-        aux_selection = study.select("auxiliary weight", cells, context)
-        chosen_values["aux_weight"] = study.chosen(aux_selection)["aux_weight"]
-        for seed in cfg.seeds:
-            step = cfg.study_downstream("aux", seed, aux_weight=chosen_values["aux_weight"])
-            runs["aux", SHARED, seed] = submit_arm(
-                study.steps, base, "aux", seed, step, selection=aux_selection
-            )
+def _aux_runs(study: _Study, base: dict[str, Any], aux_grid: list, runs: dict, chosen_values: dict) -> None:
+    """The downstream auxiliary weight, chosen on the endpoint the study is judged at; its compared runs."""
+    cfg, tunes = study.cfg, study.cfg.study.tuning_seeds
+    cells = [
+        (
+            {"aux_weight": w},
+            [
+                e
+                for t, run in zip(tunes, tuning_runs, strict=True)
+                for e in study.validate_curve(run, _seeded(f"aux weight={w}", t, tunes))
+            ],
+        )
+        for w, tuning_runs in aux_grid
+    ]
+    aux_selection = study.select("auxiliary weight", cells, {"seeds": tunes, "endpoint": cfg.curve_budgets})
+    chosen_values["aux_weight"] = study.chosen(aux_selection)["aux_weight"]
+    for seed in cfg.seeds:
+        step = cfg.study_downstream("aux", seed, aux_weight=chosen_values["aux_weight"])
+        runs["aux", SHARED, seed] = submit_arm(study.steps, base, "aux", seed, step, selection=aux_selection)
 
-    # The gate's arms: SFT from each unit's θ_ao and θ_ft.
+
+def _gate_arms(study: _Study, units: dict[int, dict[str, Any]], runs: dict) -> None:
+    """SFT from each unit's θ_ao and θ_ft: preconditions (c) and (c′) with SFT."""
     for d, stage in units.items():
-        for arm in [a for a in ("sft_from_ao", "sft_from_ft") if a in arms]:
+        for arm in [a for a in ("sft_from_ao", "sft_from_ft") if a in study.cfg.study.arms]:
             start = stage["auxiliary" if arm == "sft_from_ao" else "standard"]
             study.test_start(start, arm, d, f"{study.unit} {d} {arm} start")
-            for seed in cfg.seeds:
-                runs[arm, d, seed] = study.train_draw_arm(
-                    stage, arm, d, seed, cfg.study_downstream(arm, seed)
-                )
-    study.test_runs({k: v for k, v in runs.items() if k[0] in GATE_ARMS})
-    _held_out_losses(study, draws, data["heldout"])
-    design = _design(cfg, chosen_values)
-    if s.gate:
-        gate_report = study.analyse("gate", design)
-        if not study.gate_passed(gate_report):
-            emit(f"[study {cfg.name}] gate: preconditions (c), (c′) not shown; CapVector's arms are not run")
-            return {"report": gate_report, "selections": _selections(study)}
-        if study.gate_more:
-            after_gate(study.steps, study.gate_more)
+            for seed in study.cfg.seeds:
+                step = study.cfg.study_downstream(arm, seed)
+                runs[arm, d, seed] = study.train_draw_arm(stage, arm, d, seed, step)
 
-    # CapVector's α × λ on the tuning γ, then each draw's θ_meta and θ_null and the remaining arms.
-    rest = [arm for arm in ("meta_sft", "capvector", "null_capvector") if arm in arms]
-    tuning_vectors = {
+
+def _tuning_vectors(study: _Study, base: dict[str, Any], extraction: dict[str, Any]) -> dict[int, Any]:
+    """Tuning seed -> the γ its α × λ runs use: the mean γ̄_tune of `study.tuning_vector_draws` (one for
+    every tuning seed), else each tuning seed's own θ_ao − θ_ft from the extraction grid."""
+    cfg, s, submit, tunes = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seeds
+    if s.tuning_vector_draws:
+        draws = {d: _draw(study, d, base, extraction, compared=False) for d in s.tuning_vector_draws}
+        inputs = {f"vector {i}": draws[d]["vector"] for i, d in enumerate(s.tuning_vector_draws)}
+        mean = submit(mean_vector_task, "tuning mean capability vector γ̄_tune", inputs, {})
+        return dict.fromkeys(tunes, mean)
+    return {
         t: submit(
             extract_task,
             _seeded("tuning capability vector γ", t, tunes),
             {
                 "minuend": extraction["auxiliary"][t],
                 "subtrahend": extraction["standard"][t],
-                "base": pretrained,
+                "base": base["pretrained"],
             },
             cfg.vector,
         )
         for t in tunes
     }
+
+
+def _tune_alpha_lambda(study: _Study, base: dict[str, Any], extraction: dict[str, Any]) -> str:
+    """CapVector's α × λ, chosen on validation goals from runs at the tuning seeds; the selection's id."""
+    cfg, s, submit, tunes = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seeds
+    vectors = _tuning_vectors(study, base, extraction)
+    shared = len(set(map(id, vectors.values()))) == 1 and len(tunes) > 1
     grid_cells = []
     for alpha in s.alphas:
-        metas = {
-            t: submit(
-                merge_task,
-                _seeded(f"tune merge θ_meta α={alpha}", t, tunes),
-                {"base": pretrained, "vector": tuning_vectors[t]},
-                cfg.merge_config(alpha),
-            )
-            for t in tunes
-        }
+        merged: dict[int, Any] = {}
+        for t in tunes:
+            if shared and merged:
+                merged[t] = next(iter(merged.values()))
+                continue
+            label = f"tune merge θ_meta α={alpha}"
+            label = label if shared else _seeded(label, t, tunes)
+            merge_inputs = {"base": base["pretrained"], "vector": vectors[t]}
+            merged[t] = submit(merge_task, label, merge_inputs, cfg.merge_config(alpha))
         lambdas = [("lambda_scale", x, f"λ={x}") for x in s.lambda_scales]
         lambdas += [("lambda_absolute", x, f"λ_abs={x:g}") for x in s.lambdas]
         for form, value, name in lambdas:
@@ -481,40 +481,94 @@ def _run_study(study: _Study) -> dict[str, Any]:
             for t in tunes:
                 run = submit_arm(
                     study.steps,
-                    {**base, "vector": tuning_vectors[t]},
+                    {**base, "vector": vectors[t]},
                     "capvector",
                     t,
                     cfg.study_downstream("capvector", t, **{form: value}),
                     label=_seeded(f"tune {what}", t, tunes),
-                    meta=metas[t],
+                    meta=merged[t],
                 )
                 evaluations += study.validate_curve(run, _seeded(what, t, tunes))
             grid_cells.append(({"alpha": alpha, form: value}, evaluations))
-    context = {"seeds": tunes, "endpoint": cfg.curve_budgets}
-    grid_selection = study.select("α and λ", grid_cells, context)
-    best = study.chosen(grid_selection)
-    lam = {k: best[k] for k in ("lambda_scale", "lambda_absolute") if k in best}
-    chosen_values |= {"alpha": best["alpha"], **lam}
-    merge = cfg.merge_config(best["alpha"])
+    return study.select("α and λ", grid_cells, {"seeds": tunes, "endpoint": cfg.curve_budgets})
+
+
+def _merges(study: _Study, d: int, stage: dict, base: dict[str, Any], selection: str, alpha: float) -> None:
+    """A unit's θ_meta and θ_null at the chosen α (and its dose θ_meta where the arm runs)."""
+    cfg, submit = study.cfg, study.submit
+    merges = [("meta", "vector", "θ_meta", alpha), ("null_meta", "null_vector", "θ_null", alpha)]
+    if "meta_sft_dose" in cfg.study.arms:
+        merges.append(("dose_meta", "vector", f"θ_meta α={cfg.study.dose_alpha}", cfg.study.dose_alpha))
+    for which, vector, name, coefficient in merges:
+        merge_inputs = {"base": base["pretrained"], "vector": stage[vector], "selection": selection}
+        label = f"{study.unit} {d} merge {name}"
+        stage[which] = submit(merge_task, label, merge_inputs, cfg.merge_config(coefficient))
+    meta_validation = submit(
+        evaluate_task,
+        f"validate {study.unit} {d} θ_meta on D_ext",
+        {"checkpoint": stage["meta"]},
+        study.validation_ext,
+    )
+    study.record(ExtractionValidation(which="meta", draw=d), meta_validation)
+
+
+AFTER_GATE_ARMS = ("meta_sft", "meta_sft_dose", "capvector", "null_capvector")
+START_NAMES = {"meta": "θ_meta", "null_meta": "θ_null", "dose_meta": "θ_meta dose"}
+
+
+def _capvector_arms(
+    study: _Study, units: dict, base: dict[str, Any], selection: str, chosen_values: dict, runs: dict
+) -> list[str]:
+    """Each unit's θ_meta, θ_null (and dose), then the arms that start from them; the arms run."""
+    cfg = study.cfg
+    rest = [arm for arm in AFTER_GATE_ARMS if arm in cfg.study.arms]
+    lam = {k: chosen_values[k] for k in ("lambda_scale", "lambda_absolute") if k in chosen_values}
     for d, stage in units.items():
-        for which, vector in (("meta", "vector"), ("null_meta", "null_vector")):
-            name = "θ_meta" if which == "meta" else "θ_null"
-            merge_inputs = {"base": pretrained, "vector": stage[vector], "selection": grid_selection}
-            stage[which] = submit(merge_task, f"{study.unit} {d} merge {name}", merge_inputs, merge)
-        meta_validation = submit(
-            evaluate_task,
-            f"validate {study.unit} {d} θ_meta on D_ext",
-            {"checkpoint": stage["meta"]},
-            study.validation_ext,
-        )
-        study.record(ExtractionValidation(which="meta", draw=d), meta_validation)
+        _merges(study, d, stage, base, selection, chosen_values["alpha"])
         for arm in rest:
-            start = stage["null_meta" if arm == "null_capvector" else "meta"]
-            what = f"{study.unit} {d} {'θ_null' if arm == 'null_capvector' else 'θ_meta'}"
-            study.test_start(start, arm, d, what)
+            init = ARMS[arm].init
+            study.test_start(stage[init], arm, d, f"{study.unit} {d} {START_NAMES[init]}")
             for seed in cfg.seeds:
-                step = cfg.study_downstream(arm, seed, **({} if arm == "meta_sft" else lam))
-                runs[arm, d, seed] = study.train_draw_arm(stage, arm, d, seed, step, grid_selection)
+                step = cfg.study_downstream(arm, seed, **(lam if ARMS[arm].orthogonal else {}))
+                runs[arm, d, seed] = study.train_draw_arm(stage, arm, d, seed, step, selection)
+    return rest
+
+
+def _run_study(study: _Study) -> dict[str, Any]:
+    """The study in order: the gate's arms, the gate, then CapVector's α × λ and arms (see the module)."""
+    cfg, s = study.cfg, study.cfg.study
+    base = _foundations(study)
+    runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
+    for seed in cfg.seeds:
+        step = cfg.study_downstream("sft", seed)
+        runs["sft", SHARED, seed] = submit_arm(study.steps, base, "sft", seed, step)
+    aux_grid = _aux_grid(study, base)
+    for arm in [a for a in SHARED_ARMS if a in s.arms]:
+        study.test_start(base["pretrained"], arm, SHARED, "θ_pt")
+
+    extraction = _extraction(study, base["data"], base["pretrained"])
+    draws = {d: _draw(study, d, base, extraction) for d in s.draws}
+    units = _units(study, draws)
+    chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
+    if aux_grid:
+        _aux_runs(study, base, aux_grid, runs, chosen_values)
+    _gate_arms(study, units, runs)
+    study.test_runs({k: v for k, v in runs.items() if k[0] in GATE_ARMS})
+    _held_out_losses(study, draws, base["data"]["heldout"])
+    if s.gate:
+        gate_report = study.analyse("gate", _design(cfg, chosen_values))
+        if not study.gate_passed(gate_report):
+            emit(f"[study {cfg.name}] gate: preconditions (c), (c′) not shown; CapVector's arms are not run")
+            return {"report": gate_report, "selections": _selections(study)}
+        if study.gate_more:
+            after_gate(study.steps, study.gate_more)
+
+    selection = _tune_alpha_lambda(study, base, extraction)
+    best = study.chosen(selection)
+    chosen_values |= {k: best[k] for k in ("alpha", "lambda_scale", "lambda_absolute") if k in best}
+    if s.dose_alpha is not None:
+        chosen_values["dose_alpha"] = s.dose_alpha
+    rest = _capvector_arms(study, units, base, selection, chosen_values, runs)
     study.test_runs({k: v for k, v in runs.items() if k[0] in rest})
     report = study.analyse("final", _design(cfg, chosen_values))
     return {"report": report, "selections": _selections(study)}

@@ -63,6 +63,8 @@ COMPARED = (  # (arm, baseline): the report's headline, then the controls
     ("sft_from_ao", "sft_from_ft"),
     ("sft_from_ao", "sft"),
     ("meta_sft", "sft"),
+    ("meta_sft_dose", "sft"),
+    ("meta_sft_dose", "meta_sft"),
 )
 GATING = ("c", "c_prime")
 """The preconditions CapVector's arms wait for. (b) is reported, not gating: on the calibrated testbeds
