@@ -4,6 +4,8 @@ import hashlib
 import json
 import posixpath
 import re
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Literal
 
@@ -41,6 +43,49 @@ class ParentRef(BaseModel):
     id: str
     role: str
     attrs: dict[str, Any] = Field(default_factory=dict)
+
+
+ParentLike = ParentRef | tuple[str, str] | tuple[str, str, dict[str, Any]]
+# artifact id -> {member path: sha256} the caller took while reading that artifact's files
+ParentHashes = Mapping[str, Mapping[str, str]]
+# What a registration may say about its run besides kind, name, config and parents.
+PROVENANCE_KEYWORDS = ("library_versions", "flow_run_id", "task_run_id", "parent_hashes")
+
+
+@dataclass(frozen=True)
+class ArtifactMeta:
+    """Everything a registration says about an artifact besides its bytes: what its sidecar records
+    (kind, name, config, parents, library versions, run ids) and `parent_hashes` (see
+    ArtifactStore._check_parent). One value, so the store's write path hands it on whole."""
+
+    kind: str
+    name: str
+    config: dict[str, Any] | None = None
+    parents: tuple[ParentLike, ...] = ()
+    library_versions: dict[str, str | None] | None = None
+    flow_run_id: str | None = None
+    task_run_id: str | None = None
+    parent_hashes: ParentHashes | None = None
+
+    @classmethod
+    def of(
+        cls,
+        kind: str,
+        name: str,
+        config: dict[str, Any] | None,
+        parents: Iterable[ParentLike],
+        provenance: Mapping[str, Any],
+    ) -> "ArtifactMeta":
+        """The metadata of a `put_*` call: its positional labels and parents, and its keyword
+        `provenance`, refused like a misspelt argument (TypeError naming it) unless it is one of
+        PROVENANCE_KEYWORDS."""
+        unknown = sorted(set(provenance) - set(PROVENANCE_KEYWORDS))
+        if unknown:
+            raise TypeError(
+                f"unexpected keyword argument {unknown[0]!r}: artifact metadata keywords are "
+                f"{', '.join(PROVENANCE_KEYWORDS)}"
+            )
+        return cls(kind, name, config, tuple(parents), **provenance)
 
 
 class FileEntry(BaseModel):

@@ -73,9 +73,12 @@ from capvector.artifacts.errors import (
 from capvector.artifacts.hashing import copy_and_hash, hash_file, hash_stream, manifest_id
 from capvector.artifacts.provenance import code_version
 from capvector.artifacts.records import (
+    ArtifactMeta,
     ArtifactRecord,
     FileEntry,
     IntegrityVerdict,
+    ParentHashes,
+    ParentLike,
     ParentRef,
     RunRecord,
     SealBroken,
@@ -88,9 +91,6 @@ from capvector.durable import fsync_dir, write_atomic
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 CHANGES = "changes"  # a remote store's change token (ArtifactStore._note_change)
-ParentLike = ParentRef | tuple[str, str] | tuple[str, str, dict[str, Any]]
-# artifact id -> {member path: sha256} the caller took while reading that artifact's files
-ParentHashes = Mapping[str, Mapping[str, str]]
 FICLONE = 0x40049409  # linux/fs.h: share the source's blocks (btrfs, XFS, bcachefs); copy-on-write
 
 
@@ -531,14 +531,11 @@ class ArtifactStore:
         artifact_id: str,
         layout: str,
         entries: list[tuple[str, int, str]],
-        kind: str,
-        name: str,
-        config: dict[str, Any] | None,
+        meta: ArtifactMeta,
         parents: list[ParentRef],
-        library_versions: dict[str, str | None] | None,
-        flow_run_id: str | None,
-        task_run_id: str | None,
     ) -> ArtifactRecord:
+        """Commit the staged content and write its sidecar; `parents` are `meta.parents` as
+        `_resolve_parents` checked them (full ids)."""
         existing = self._committed_record(artifact_id)
         present = existing is not None
         if existing is not None:
@@ -563,16 +560,16 @@ class ArtifactStore:
         record, sidecar = seal_sidecar(
             ArtifactRecord(
                 id=artifact_id,
-                kind=kind,
-                name=name,
+                kind=meta.kind,
+                name=meta.name,
                 layout=layout,
                 files=files,
-                config=config or {},
+                config=meta.config or {},
                 parents=parents,
                 code_version=code_version(),
-                library_versions=library_versions or {},
-                flow_run_id=flow_run_id,
-                task_run_id=task_run_id,
+                library_versions=meta.library_versions or {},
+                flow_run_id=meta.flow_run_id,
+                task_run_id=meta.task_run_id,
             )
         )
         self._write_small(self.sidecar_path(artifact_id), sidecar)
@@ -605,35 +602,21 @@ class ArtifactStore:
         *,
         filename: str,
         sha256: str | None = None,
-        library_versions: dict[str, str | None] | None = None,
-        flow_run_id: str | None = None,
-        task_run_id: str | None = None,
-        parent_hashes: ParentHashes | None = None,
+        **provenance: Any,
     ) -> ArtifactRecord:
         """Store everything readable from `src` as a single-file artifact named `filename` inside it.
 
         `sha256`: what the caller hashed these bytes to; other bytes are refused (ValueError).
-        `parent_hashes`: see `_check_parent`."""
+        `provenance`: library_versions, flow_run_id, task_run_id, and parent_hashes (see `_check_parent`)."""
+        meta = ArtifactMeta.of(kind, name, config, parents, provenance)
         filename = _plain_name(filename)
-        _check_labels(kind, name)
-        refs = self._resolve_parents(parents, parent_hashes)
+        _check_labels(meta.kind, meta.name)
+        refs = self._resolve_parents(meta.parents, meta.parent_hashes)
         staged = self._stage()
         try:
             digest, size = self._write_stream(src, posixpath.join(staged, filename))
             _expect({filename: sha256} if sha256 else {}, [(filename, size, digest)])
-            return self._finish(
-                staged,
-                digest,
-                "file",
-                [(filename, size, digest)],
-                kind,
-                name,
-                config,
-                refs,
-                library_versions,
-                flow_run_id,
-                task_run_id,
-            )
+            return self._finish(staged, digest, "file", [(filename, size, digest)], meta, refs)
         finally:
             if self.fs.exists(staged):
                 self._discard(staged)
@@ -645,18 +628,25 @@ class ArtifactStore:
         name: str,
         config: dict[str, Any] | None = None,
         parents: Iterable[ParentLike] = (),
-        **kw: Any,
+        *,
+        filename: str | None = None,
+        sha256: str | None = None,
+        **provenance: Any,
     ) -> ArtifactRecord:
-        """Store a local file; its id equals `sha256sum src_path`.
+        """Store a local file (named `filename` in the store, by default its own name); its id equals
+        `sha256sum src_path`.
 
         A file in this store's `staging()` is moved in, not copied, and with `sha256` (its hash as its
         writer or reader took it) not read again either."""
         src_path = os.fspath(src_path)
-        kw.setdefault("filename", os.path.basename(src_path))
+        filename = os.path.basename(src_path) if filename is None else filename
         if self._in_staging(src_path):
-            return self._adopt(src_path, "file", kind, name, config, parents, **kw)
+            meta = ArtifactMeta.of(kind, name, config, parents, provenance)
+            return self._adopt(src_path, "file", meta, filename=filename, sha256=sha256)
         with open(src_path, "rb", buffering=0) as f:
-            return self.put_stream(f, kind, name, config, parents, **kw)
+            return self.put_stream(
+                f, kind, name, config, parents, filename=filename, sha256=sha256, **provenance
+            )
 
     def put_bytes(
         self,
@@ -697,10 +687,7 @@ class ArtifactStore:
         parents: Iterable[ParentLike] = (),
         *,
         hashes: Mapping[str, str] | None = None,
-        library_versions: dict[str, str | None] | None = None,
-        flow_run_id: str | None = None,
-        task_run_id: str | None = None,
-        parent_hashes: ParentHashes | None = None,
+        **provenance: Any,
     ) -> ArtifactRecord:
         """Store a local directory tree (dataset, sharded checkpoint, adapter) as one artifact.
 
@@ -710,23 +697,19 @@ class ArtifactStore:
         was listed with, so a file that grows meanwhile is refused rather than copied without end.
         A directory in this store's `staging()` is moved in; `hashes` (member -> sha256 as its writer
         or reader took it) spare reading those members again there, and must match elsewhere.
+        `provenance`: as for `put_stream`.
         """
+        meta = ArtifactMeta.of(kind, name, config, parents, provenance)
         src_dir = os.path.abspath(os.fspath(src_dir))
         if not os.path.isdir(src_dir):
             raise NotADirectoryError(src_dir)
-        _check_labels(kind, name)
-        meta = dict(
-            library_versions=library_versions,
-            flow_run_id=flow_run_id,
-            task_run_id=task_run_id,
-            parent_hashes=parent_hashes,
-        )
+        _check_labels(meta.kind, meta.name)
         if self._in_staging(src_dir):
-            return self._adopt(src_dir, "dir", kind, name, config, parents, hashes=hashes, **meta)
+            return self._adopt(src_dir, "dir", meta, hashes=hashes)
         members = _members(src_dir)
         if not members:
             raise ValueError(f"{src_dir} contains no files; an empty artifact is almost certainly a bug")
-        refs = self._resolve_parents(parents, parent_hashes)
+        refs = self._resolve_parents(meta.parents, meta.parent_hashes)
         staged = self._stage()
         try:
             entries = []
@@ -745,19 +728,7 @@ class ArtifactStore:
             if self.local:
                 for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _ in members}:
                     fsync_dir(d)
-            return self._finish(
-                staged,
-                manifest_id(entries),
-                "dir",
-                entries,
-                kind,
-                name,
-                config,
-                refs,
-                library_versions,
-                flow_run_id,
-                task_run_id,
-            )
+            return self._finish(staged, manifest_id(entries), "dir", entries, meta, refs)
         finally:
             if self.fs.exists(staged):
                 self._discard(staged)
@@ -766,23 +737,16 @@ class ArtifactStore:
         self,
         src: str,
         layout: str,
-        kind: str,
-        name: str,
-        config: dict[str, Any] | None,
-        parents: Iterable[ParentLike],
+        meta: ArtifactMeta,
         *,
         filename: str | None = None,
         sha256: str | None = None,
         hashes: Mapping[str, str] | None = None,
-        library_versions: dict[str, str | None] | None = None,
-        flow_run_id: str | None = None,
-        task_run_id: str | None = None,
-        parent_hashes: ParentHashes | None = None,
     ) -> ArtifactRecord:
         """Commit a file or folder of `staging()` by renaming it (same filesystem, no copy); members
         without a hash from `hashes`/`sha256` are hashed here. Each file is fsynced before the commit."""
-        _check_labels(kind, name)
-        refs = self._resolve_parents(parents, parent_hashes)
+        _check_labels(meta.kind, meta.name)
+        refs = self._resolve_parents(meta.parents, meta.parent_hashes)
         staged = self._p("tmp", uuid.uuid4().hex)
         if layout == "file":
             filename = _plain_name(filename or os.path.basename(src))
@@ -804,19 +768,7 @@ class ArtifactStore:
             for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _, _ in entries}:
                 fsync_dir(d)
             artifact_id = entries[0][2] if layout == "file" else manifest_id(entries)
-            return self._finish(
-                staged,
-                artifact_id,
-                layout,
-                entries,
-                kind,
-                name,
-                config,
-                refs,
-                library_versions,
-                flow_run_id,
-                task_run_id,
-            )
+            return self._finish(staged, artifact_id, layout, entries, meta, refs)
         finally:
             self._discard(staged)
 
