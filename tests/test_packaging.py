@@ -68,3 +68,17 @@ def test_no_product_function_is_longer_than_80_lines() -> None:
                     if lines > 80:
                         long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({lines} lines)")
     assert not long, long
+
+
+def test_no_function_of_the_store_takes_more_than_8_parameters() -> None:
+    """Artifact metadata travels as one value (records.ArtifactMeta), not threaded positionally."""
+    wide = []
+    for path in sorted((REPO / "artifacts").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                a = node.args
+                names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
+                count = len(names) - (names[:1] in (["self"], ["cls"])) + bool(a.vararg) + bool(a.kwarg)
+                if count > 8:
+                    wide.append(f"{path.name}:{node.lineno} {node.name} ({count})")
+    assert not wide, wide
