@@ -33,6 +33,7 @@ matches no tensor at all, or a selection that is empty, is an error (it is almos
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import math
@@ -624,6 +625,47 @@ def _record(hashes: dict[Path, str], digests: dict[Path, str]) -> None:
             raise VectorOpError(f"{path} changed while it was being read; run the command again")
 
 
+@contextlib.contextmanager
+def _open_readers(
+    ckpts: Mapping[str, Checkpoint], copies: Mapping[Path, Path] | None
+) -> Iterator[dict[str, _HashingReader]]:
+    """A hashing reader per role, in order, sharing one helper thread; closed when the output is done.
+    Each file in `copies` is copied by the first reader of it (its entry taken out of a private dict)."""
+    pool = ThreadPoolExecutor(1)
+    copies = dict(copies or {})
+    readers = {role: _HashingReader(c, pool, copies) for role, c in ckpts.items()}
+    try:
+        yield readers
+    finally:
+        for r in readers.values():
+            r.close()
+        pool.shutdown()
+
+
+def _out_dtypes(ref: Checkpoint, names: Iterable[str], out_as: str | None) -> dict[str, str]:
+    """`--out-dtype` for the float tensors among `names` (none given: each keeps `ref`'s dtype)."""
+    return {n: out_as for n in names if out_as and ref.specs[n].is_float}
+
+
+def _carry_source(carry_from: PathLike | None, ref: Checkpoint) -> Path:
+    """Where a folder output takes its non-weight files from: `carry_from`, else the reference input."""
+    return Path(carry_from) if carry_from is not None else ref.path
+
+
+def _filters_meta(include: Sequence[str] | None, exclude: Sequence[str] | None) -> dict[str, str]:
+    return {
+        "capvector.include": json.dumps(list(include or [])),
+        "capvector.exclude": json.dumps(list(exclude or [])),
+    }
+
+
+def _same_or_raise(name: str, role: str, x: np.ndarray, others: Iterable[tuple[str, np.ndarray]]) -> None:
+    """A non-float tensor is carried over as it is, so every input must hold the same values."""
+    for other, y in others:
+        if not np.array_equal(x, y):
+            raise VectorOpError(f"non-float tensor {name!r} differs between {role} and {other}")
+
+
 def extract(
     minuend: PathLike,
     subtrahend: PathLike,
@@ -663,58 +705,91 @@ def extract(
     """
     compute_as, out_as = compute_dtype(dtype), float_dtype(out_dtype)
     a, b = Checkpoint(minuend), Checkpoint(subtrahend)
-    b.rename(strip_prefix, add_prefix, f"subtrahend {b.path}")
-    _key_diff(a, b, f"subtrahend {b.path}")
-    names = select_names(a.keys(), include, exclude)
-    _compare(a, b, f"subtrahend {b.path}", names, compute_as)
+    names = _extract_names(a, b, include, exclude, strip_prefix, add_prefix, compute_as)
     copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
     base_hash = _resolve_hash(base, hashes, copies)
+    meta = _extract_meta(a, names, include, exclude, base, base_hash)
+    dtypes = _out_dtypes(a, names, out_as)
+    with _open_readers({"minuend": a, "subtrahend": b}, copies) as readers:
+        compute = functools.partial(_difference, *readers.values(), dtypes, compute_as, _Scratch())
+        return _run(
+            out, names, a, readers, meta, compute, max_shard_bytes, overwrite, hashes=hashes, dtypes=dtypes,
+            carry_from=_carry_source(carry_from, a), card=_with_base(card, base_hash), input_ids=input_ids,
+        )  # fmt: skip
+
+
+def _extract_names(
+    a: Checkpoint,
+    b: Checkpoint,
+    include: Sequence[str] | None,
+    exclude: Sequence[str] | None,
+    strip_prefix: str | None,
+    add_prefix: str | None,
+    compute_as: str | None,
+) -> list[str]:
+    """The tensors the vector holds, once the subtrahend's names are mapped onto the minuend's and both
+    are checked to hold the same tensors (shapes, dtypes), before anything is read."""
+    role = f"subtrahend {b.path}"
+    b.rename(strip_prefix, add_prefix, role)
+    _key_diff(a, b, role)
+    names = select_names(a.keys(), include, exclude)
+    _compare(a, b, role, names, compute_as)
+    return names
+
+
+def _extract_meta(
+    a: Checkpoint,
+    names: list[str],
+    include: Sequence[str] | None,
+    exclude: Sequence[str] | None,
+    base: PathLike | None,
+    base_hash: str | None,
+) -> dict[str, str]:
+    """A vector's metadata: its formula, its filters, whether it is partial, and the base it is meant for
+    (by files' hash and, for a base read here, by content hash)."""
     base_content = Checkpoint(base).content_sha256() if base is not None and Path(base).exists() else None
-    pool = ThreadPoolExecutor(1)
-    ra, rb = _HashingReader(a, pool, copies), _HashingReader(b, pool, copies)
-    dtypes = {n: out_as for n in names if out_as and a.specs[n].is_float}
-
-    scratch = _Scratch()
-
-    def compute(n: str) -> Iterator[np.ndarray]:
-        (ba, bb), (da, db) = _byte_bounds([a, b], n), (a.specs[n].dtype, b.specs[n].dtype)
-        to, wide = dtypes.get(n, da), _wide_for(compute_as, da, db)
-        for x, y in zip(ra.chunks(n, ba), rb.chunks(n, bb), strict=True):
-            if da not in FLOATS:
-                if not np.array_equal(x, y):
-                    raise VectorOpError(f"non-float tensor {n!r} differs between minuend and subtrahend")
-                yield x
-                continue
-            # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
-            xw, yw = _to(x, da, wide, scratch, "x"), _to(y, db, wide, scratch, "y")
-            acc = np.subtract(xw, yw, out=scratch("acc", x.size, wide))
-            yield _cast_back(acc, to, n, [("minuend", x, da), ("subtrahend", y, db)], scratch)
-
     meta = {
         "capvector.kind": "vector",
         "capvector.formula": "minuend - subtrahend",
         "capvector.coefficients": json.dumps({"minuend": 1.0, "subtrahend": -1.0}),
-        "capvector.include": json.dumps(list(include or [])),
-        "capvector.exclude": json.dumps(list(exclude or [])),
+        **_filters_meta(include, exclude),
         "capvector.partial": json.dumps(len(names) != len(a)),
     }
     if base_hash:
         meta["capvector.base_sha256"] = base_hash
     if base_content:
         meta["capvector.base_content_sha256"] = base_content
-    if card is not None and base_hash:
-        card = card.model_copy(update={"extra_inputs": {**card.extra_inputs, "base": base_hash}})
-    readers = {"minuend": ra, "subtrahend": rb}
-    carry = Path(carry_from) if carry_from is not None else a.path
-    try:
-        return _run(
-            out, names, a, readers, meta, compute, max_shard_bytes, overwrite, hashes=hashes, dtypes=dtypes,
-            carry_from=carry, card=card, input_ids=input_ids,
-        )  # fmt: skip
-    finally:
-        for r in readers.values():
-            r.close()
-        pool.shutdown()
+    return meta
+
+
+def _with_base(card: Card | None, base_hash: str | None) -> Card | None:
+    """The card naming the base the vector is meant for (an input that is not streamed)."""
+    if card is None or not base_hash:
+        return card
+    return card.model_copy(update={"extra_inputs": {**card.extra_inputs, "base": base_hash}})
+
+
+def _difference(
+    ra: _HashingReader,
+    rb: _HashingReader,
+    dtypes: Mapping[str, str],
+    compute_as: str | None,
+    scratch: _Scratch,
+    n: str,
+) -> Iterator[np.ndarray]:
+    """Tensor `n` of minuend − subtrahend, piece by piece, in the output's dtype."""
+    ba, bb = _byte_bounds([ra.ckpt, rb.ckpt], n)
+    da, db = ra.ckpt.specs[n].dtype, rb.ckpt.specs[n].dtype
+    to, wide = dtypes.get(n, da), _wide_for(compute_as, da, db)
+    for x, y in zip(ra.chunks(n, ba), rb.chunks(n, bb), strict=True):
+        if da not in FLOATS:
+            _same_or_raise(n, "minuend", x, [("subtrahend", y)])
+            yield x
+            continue
+        # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
+        xw, yw = _to(x, da, wide, scratch, "x"), _to(y, db, wide, scratch, "y")
+        acc = np.subtract(xw, yw, out=scratch("acc", x.size, wide))
+        yield _cast_back(acc, to, n, [("minuend", x, da), ("subtrahend", y, db)], scratch)
 
 
 def merge(
@@ -751,107 +826,148 @@ def merge(
     the vectors' names, to match base's), `carry_from` (default: base, if a folder), `card`,
     `input_ids`: as in `extract`.
     """
+    _check_coefficients(vectors)
+    compute_as, out_as = compute_dtype(dtype), float_dtype(out_dtype)
+    b = Checkpoint(base)
+    vecs = _vectors_fitting(b, vectors, strip_prefix, add_prefix, compute_as)
+    selected = set(select_names(b.keys(), include, exclude))
+    dtypes = _out_dtypes(b, b.keys(), out_as)
+    with _open_readers({"base": b, **{f"vector_{i}": v for i, (v, _) in enumerate(vecs)}}, copies) as readers:
+        weighted = [(i, readers[f"vector_{i}"], a) for i, (_, a) in enumerate(vecs)]
+        compute = functools.partial(
+            _sum_pieces, readers["base"], weighted, selected, dtypes, compute_as, _Scratch()
+        )
+        return _run(
+            out, b.keys(), b, readers, _merge_meta(b, vecs, include, exclude), compute, max_shard_bytes,
+            overwrite, functools.partial(_check_bases, b, vecs, force), hashes, dtypes=dtypes,
+            carry_from=_carry_source(carry_from, b), card=_with_alphas(card, vecs), input_ids=input_ids,
+        )  # fmt: skip
+
+
+def _check_coefficients(vectors: Sequence[tuple[PathLike, float]]) -> None:
     if not vectors:
         raise VectorOpError("merge needs at least one (vector, coefficient) pair")
     bad = [f"vector {i}: {alpha}" for i, (_, alpha) in enumerate(vectors) if not math.isfinite(float(alpha))]
     if bad:  # NaN/inf would only show as a non-finite tensor once streaming reached it
         raise VectorOpError(f"merge coefficients must be finite numbers ({', '.join(bad)})")
-    compute_as, out_as = compute_dtype(dtype), float_dtype(out_dtype)
-    b = Checkpoint(base)
+
+
+def _vectors_fitting(
+    b: Checkpoint,
+    vectors: Sequence[tuple[PathLike, float]],
+    strip_prefix: str | None,
+    add_prefix: str | None,
+    compute_as: str | None,
+) -> list[tuple[Checkpoint, float]]:
+    """The (vector, α) pairs, opened; each vector, its names mapped onto base's, must hold base's tensors
+    (a partial one: some of them) with their shapes and dtypes."""
     vecs = [(Checkpoint(p), float(alpha)) for p, alpha in vectors]
     for i, (v, _) in enumerate(vecs):
         v.rename(strip_prefix, add_prefix, f"vector {i} ({v.path})")
         partial = json.loads(v.metadata.get("capvector.partial", "false"))
         _key_diff(b, v, f"vector {i} ({v.path})", allow_missing=partial)
         _compare(b, v, f"vector {i} ({v.path})", v.keys(), compute_as)
-    names = b.keys()
-    selected = set(select_names(names, include, exclude))
-    dtypes = {n: out_as for n in names if out_as and b.specs[n].is_float}
-    pool = ThreadPoolExecutor(1)
-    copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
-    rb = _HashingReader(b, pool, copies)
-    rvs = [_HashingReader(v, pool, copies) for v, _ in vecs]
-    scratch = _Scratch()
+    return vecs
 
-    def compute(n: str) -> Iterator[np.ndarray]:
-        dtype, to = b.specs[n].dtype, dtypes.get(n, b.specs[n].dtype)
-        users = [(i, r, a) for i, (r, (v, a)) in enumerate(zip(rvs, vecs, strict=True)) if n in v]
-        if n not in selected:
-            users = []
-        bounds = _byte_bounds([b, *(r.ckpt for _, r, _ in users)], n)
-        kinds = [r.ckpt.specs[n].dtype for _, r, _ in users]
-        wide = _wide_for(compute_as, dtype, *kinds)
-        streams = [
-            (i, r.chunks(n, bd), a, d) for (i, r, a), bd, d in zip(users, bounds[1:], kinds, strict=True)
-        ]
-        for x in rb.chunks(n, bounds[0]):
-            terms = [(i, next(it), a, d) for i, it, a, d in streams]
-            if not terms and to == dtype:
-                _finite_or_raise(x, dtype, n, "base")
-                yield x
-                continue
-            if dtype not in FLOATS:
-                for i, y, _, _ in terms:
-                    if not np.array_equal(x, y):
-                        raise VectorOpError(f"non-float tensor {n!r} differs between base and vector {i}")
-                yield x
-                continue
-            # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
-            xw, acc = _to(x, dtype, wide, scratch, "x"), scratch("acc", x.size, wide)
-            if not terms:  # base only, cast to --out-dtype
-                np.copyto(acc, xw)
-            for j, (_, y, a, d) in enumerate(terms):
-                yw = _to(y, d, wide, scratch, "y")
-                term = np.multiply(yw, wide(a), out=scratch("term", x.size, wide))
-                np.add(acc if j else xw, term, out=acc)
-            inputs = [("base", x, dtype)] + [(f"vector {i}", y, d) for i, y, _, d in terms]
-            yield _cast_back(acc, to, n, inputs, scratch)
 
-    content: list[str] = []  # base's content hash, read only when a file hash does not match
-
-    def base_content() -> str:
-        if not content:
-            content.append(b.content_sha256())
-        return content[0]
-
-    def check(digests: dict[str, str]) -> None:
-        for i, (v, _) in enumerate(vecs):
-            want = v.metadata.get("capvector.base_sha256")
-            want_content = v.metadata.get("capvector.base_content_sha256")
-            if not (want or want_content) or want == digests["base"] or force:
-                continue
-            if base_content() in (want, want_content):
-                continue
-            named = (want_content or want)[:12]
-            raise VectorOpError(
-                f"vector {i} ({v.path}) was extracted for base {named}…, not {b.path} "
-                f"(tensors {base_content()[:12]}…, files {digests['base'][:12]}…); "
-                "pass --force to merge anyway"
-            )
-
+def _merge_meta(
+    b: Checkpoint,
+    vecs: Sequence[tuple[Checkpoint, float]],
+    include: Sequence[str] | None,
+    exclude: Sequence[str] | None,
+) -> dict[str, str]:
+    """Base's metadata but its own provenance (so a merged policy loads as its base does), the formula,
+    the coefficients and the filters."""
     carried = {k: v for k, v in b.metadata.items() if not k.startswith("capvector.") or k in CARRIED_KEYS}
-    meta = {
+    return {
         **carried,
         "capvector.kind": "merged",
         "capvector.formula": "base + sum_i alpha_i * vector_i",
         "capvector.coefficients": json.dumps([a for _, a in vecs]),
-        "capvector.include": json.dumps(list(include or [])),
-        "capvector.exclude": json.dumps(list(exclude or [])),
+        **_filters_meta(include, exclude),
     }
-    readers = {"base": rb, **{f"vector_{i}": r for i, r in enumerate(rvs)}}
-    if card is not None:
-        alphas = {f"vector_{i}": a for i, (_, a) in enumerate(vecs)}
-        card = card.model_copy(update={"alphas": {**alphas, **card.alphas}})
-    carry = Path(carry_from) if carry_from is not None else b.path
-    try:
-        return _run(
-            out, names, b, readers, meta, compute, max_shard_bytes, overwrite, check, hashes, dtypes=dtypes,
-            carry_from=carry, card=card, input_ids=input_ids,
-        )  # fmt: skip
-    finally:
-        for r in readers.values():
-            r.close()
-        pool.shutdown()
+
+
+def _with_alphas(card: Card | None, vecs: Sequence[tuple[Checkpoint, float]]) -> Card | None:
+    """The card with each vector's coefficient (those the caller gave win)."""
+    if card is None:
+        return None
+    alphas = {f"vector_{i}": a for i, (_, a) in enumerate(vecs)}
+    return card.model_copy(update={"alphas": {**alphas, **card.alphas}})
+
+
+def _sum_pieces(
+    rb: _HashingReader,
+    weighted: Sequence[tuple[int, _HashingReader, float]],
+    selected: set[str],
+    dtypes: Mapping[str, str],
+    compute_as: str | None,
+    scratch: _Scratch,
+    n: str,
+) -> Iterator[np.ndarray]:
+    """Tensor `n` of base + Σ α_i·vector_i, piece by piece, over the vectors that hold it (none when it
+    is outside the filter: base's own, checked finite, or cast to the output's dtype)."""
+    dtype = rb.ckpt.specs[n].dtype
+    to = dtypes.get(n, dtype)
+    users = [(i, r, a) for i, r, a in weighted if n in r.ckpt] if n in selected else []
+    bounds = _byte_bounds([rb.ckpt, *(r.ckpt for _, r, _ in users)], n)
+    kinds = [r.ckpt.specs[n].dtype for _, r, _ in users]
+    wide = _wide_for(compute_as, dtype, *kinds)
+    streams = [(i, r.chunks(n, bd), a, d) for (i, r, a), bd, d in zip(users, bounds[1:], kinds, strict=True)]
+    for x in rb.chunks(n, bounds[0]):
+        terms = [(i, next(it), a, d) for i, it, a, d in streams]
+        if not terms and to == dtype:
+            _finite_or_raise(x, dtype, n, "base")
+            yield x
+        elif dtype not in FLOATS:
+            _same_or_raise(n, "base", x, [(f"vector {i}", y) for i, y, _, _ in terms])
+            yield x
+        else:
+            yield _sum_piece(x, dtype, terms, to, wide, n, scratch)
+
+
+def _sum_piece(
+    x: np.ndarray,
+    dtype: str,
+    terms: Sequence[tuple[int, np.ndarray, float, str]],
+    to: str,
+    wide: type,
+    name: str,
+    scratch: _Scratch,
+) -> np.ndarray:
+    """One piece of base (`x`) plus its `terms` (vector index, piece, α, dtype), computed in `wide`, each
+    α·vector rounded before it is added, then cast to `to`."""
+    # Never modify x or y in place: their bytes may still be being hashed in the helper thread.
+    xw, acc = _to(x, dtype, wide, scratch, "x"), scratch("acc", x.size, wide)
+    if not terms:  # base only, cast to --out-dtype
+        np.copyto(acc, xw)
+    for j, (_, y, a, d) in enumerate(terms):
+        yw = _to(y, d, wide, scratch, "y")
+        term = np.multiply(yw, wide(a), out=scratch("term", x.size, wide))
+        np.add(acc if j else xw, term, out=acc)
+    inputs = [("base", x, dtype)] + [(f"vector {i}", y, d) for i, y, _, d in terms]
+    return _cast_back(acc, to, name, inputs, scratch)
+
+
+def _check_bases(
+    b: Checkpoint, vecs: Sequence[tuple[Checkpoint, float]], force: bool, digests: dict[str, str]
+) -> None:
+    """Refuse a vector made for another base (unless `force`), once base's file hash is known (it is
+    computed while streaming); base's content hash is read only when a file hash does not match."""
+    base_content = functools.cache(b.content_sha256)
+    for i, (v, _) in enumerate(vecs):
+        want = v.metadata.get("capvector.base_sha256")
+        want_content = v.metadata.get("capvector.base_content_sha256")
+        if not (want or want_content) or want == digests["base"] or force:
+            continue
+        if base_content() in (want, want_content):
+            continue
+        named = (want_content or want)[:12]
+        raise VectorOpError(
+            f"vector {i} ({v.path}) was extracted for base {named}…, not {b.path} "
+            f"(tensors {base_content()[:12]}…, files {digests['base'][:12]}…); "
+            "pass --force to merge anyway"
+        )
 
 
 MEAN_METHODS = ("mean", "ties")
@@ -910,6 +1026,17 @@ def mean(
     """
     check_mean_args(len(vectors), method, density)
     vecs = [Checkpoint(p) for p in vectors]
+    _check_vectors_match(vecs)
+    meta, ref = _mean_meta(vecs, method, density), vecs[0]
+    with _open_readers({f"vector_{i}": v for i, v in enumerate(vecs)}, copies) as readers:
+        compute = functools.partial(_mean_pieces, list(readers.values()), method, density, _Scratch())
+        return _run(
+            out, ref.keys(), ref, readers, meta, compute, max_shard_bytes, overwrite, _refuse_repeats, hashes
+        )
+
+
+def _check_vectors_match(vecs: Sequence[Checkpoint]) -> None:
+    """Each vector given once, all with vector 0's tensors, shapes and dtypes."""
     first: dict[Path, int] = {}
     for i, v in enumerate(vecs):
         j = first.setdefault(v.path.resolve(), i)
@@ -922,15 +1049,13 @@ def mean(
         role = f"vector {i} ({v.path}; vector 0 is {ref.path})"
         _key_diff(ref, v, role)
         _compare(ref, v, role, ref.keys())
-    bases: dict[str, list[int]] = {}
+
+
+def _mean_meta(vecs: Sequence[Checkpoint], method: str, density: float) -> dict[str, str]:
+    """A mean's metadata: its method, and what its inputs agree on (partial, filters, their base)."""
     by_content = all("capvector.base_content_sha256" in v.metadata for v in vecs)  # else by files
     key = "capvector.base_content_sha256" if by_content else "capvector.base_sha256"
-    for i, v in enumerate(vecs):
-        if want := v.metadata.get(key):
-            bases.setdefault(want, []).append(i)
-    if len(bases) > 1:
-        named = "; ".join(f"{b[:12]}… (vector {', '.join(map(str, ix))})" for b, ix in bases.items())
-        raise VectorOpError(f"the vectors were extracted for different bases: {named}")
+    bases = _bases_named(vecs, key)
     partial = any(json.loads(v.metadata.get("capvector.partial", "false")) for v in vecs)
     meta = {
         "capvector.kind": "vector",
@@ -950,58 +1075,75 @@ def mean(
         meta[key] = next(iter(bases))
         if by_content and (files := vecs[0].metadata.get("capvector.base_sha256")):
             meta["capvector.base_sha256"] = files
-    pool = ThreadPoolExecutor(1)
-    copies = dict(copies or {})  # each file is copied by the first reader of it (its entry taken out)
-    readers = [_HashingReader(v, pool, copies) for v in vecs]
-    scratch = _Scratch()
+    return meta
 
-    def compute(n: str) -> Iterator[np.ndarray]:
-        spec, bounds = ref.specs[n], ref.chunk_bounds(n, CHUNK_BYTES)
-        dtype, numel = spec.dtype, spec.nbytes // spec.itemsize
-        ties = method == "ties" and dtype in FLOATS
-        keep = _keep_count(numel, density)
-        limits = None  # per vector, the magnitude (as its bits) an entry needs to be kept
-        if ties and len(bounds) > 1:
-            limits = [_kth_largest_streamed(r, n, bounds, keep, scratch) for r in readers]
-        for xs in zip(*(r.chunks(n, bounds) for r in readers), strict=True):
-            if dtype not in FLOATS:
-                for i, y in enumerate(xs[1:], 1):
-                    if not np.array_equal(xs[0], y):
-                        raise VectorOpError(f"non-float tensor {n!r} differs between vector 0 and vector {i}")
-                yield xs[0]
-                continue
-            # Never modify an input piece in place: its bytes may still be being hashed in the helper thread.
-            inputs = [
-                (f"vector {i} ({v.path})", x, dtype) for i, (v, x) in enumerate(zip(vecs, xs, strict=True))
-            ]
-            if ties:
-                for role, x, _ in inputs:  # NaN would compare as neither sign and vanish from the result
-                    _finite_or_raise(x, dtype, n, role)
-                if limits is None:  # the whole tensor is this one piece
-                    limits_here = [_kth_largest(_magnitude(x, dtype), keep) for x in xs]
-                else:
-                    limits_here = limits
-                acc = _ties_piece(xs, dtype, limits_here, scratch)
-            else:
-                acc = _mean_piece(xs, dtype, scratch)
-            yield _cast_back(acc, dtype, n, inputs, scratch)
 
-    def check(digests: dict[str, str]) -> None:
-        seen: dict[str, str] = {}
-        for role, digest in digests.items():
-            if (other := seen.setdefault(digest, role)) != role:
-                raise VectorOpError(
-                    f"{other.replace('_', ' ')} and {role.replace('_', ' ')} are the same bytes "
-                    f"(sha256 {digest[:12]}…): each vector counts once in a mean"
-                )
+def _bases_named(vecs: Sequence[Checkpoint], key: str) -> dict[str, list[int]]:
+    """base (as metadata `key` names it) -> the vectors made for it; different bases are refused."""
+    bases: dict[str, list[int]] = {}
+    for i, v in enumerate(vecs):
+        if want := v.metadata.get(key):
+            bases.setdefault(want, []).append(i)
+    if len(bases) > 1:
+        named = "; ".join(f"{b[:12]}… (vector {', '.join(map(str, ix))})" for b, ix in bases.items())
+        raise VectorOpError(f"the vectors were extracted for different bases: {named}")
+    return bases
 
-    roles = {f"vector_{i}": r for i, r in enumerate(readers)}
-    try:
-        return _run(out, ref.keys(), ref, roles, meta, compute, max_shard_bytes, overwrite, check, hashes)
-    finally:
-        for r in readers:
-            r.close()
-        pool.shutdown()
+
+def _mean_pieces(
+    readers: Sequence[_HashingReader], method: str, density: float, scratch: _Scratch, n: str
+) -> Iterator[np.ndarray]:
+    """Tensor `n` of the mean (or TIES merge) of the vectors, piece by piece. TIES needs each vector's
+    magnitude threshold first: found in a look-ahead pass when the tensor spans several pieces."""
+    vecs = [r.ckpt for r in readers]
+    spec, bounds = vecs[0].specs[n], vecs[0].chunk_bounds(n, CHUNK_BYTES)
+    dtype, numel = spec.dtype, spec.nbytes // spec.itemsize
+    ties = method == "ties" and dtype in FLOATS
+    keep = _keep_count(numel, density)
+    limits = None  # per vector, the magnitude (as its bits) an entry needs to be kept
+    if ties and len(bounds) > 1:
+        limits = [_kth_largest_streamed(r, n, bounds, keep, scratch) for r in readers]
+    for xs in zip(*(r.chunks(n, bounds) for r in readers), strict=True):
+        if dtype not in FLOATS:
+            _same_or_raise(n, "vector 0", xs[0], [(f"vector {i}", y) for i, y in enumerate(xs[1:], 1)])
+            yield xs[0]
+            continue
+        # Never modify an input piece in place: its bytes may still be being hashed in the helper thread.
+        inputs = [(f"vector {i} ({v.path})", x, dtype) for i, (v, x) in enumerate(zip(vecs, xs, strict=True))]
+        if ties:
+            acc = _ties_checked(xs, inputs, dtype, n, keep, limits, scratch)
+        else:
+            acc = _mean_piece(xs, dtype, scratch)
+        yield _cast_back(acc, dtype, n, inputs, scratch)
+
+
+def _ties_checked(
+    xs: Sequence[np.ndarray],
+    inputs: list[tuple[str, np.ndarray, str]],
+    dtype: str,
+    name: str,
+    keep: int,
+    limits: list[int] | None,
+    scratch: _Scratch,
+) -> np.ndarray:
+    """`_ties_piece` once every input is finite (NaN would compare as neither sign and vanish from the
+    result); without `limits` the tensor is this one piece, and its thresholds are found here."""
+    for role, x, _ in inputs:
+        _finite_or_raise(x, dtype, name, role)
+    if limits is None:
+        limits = [_kth_largest(_magnitude(x, dtype), keep) for x in xs]
+    return _ties_piece(xs, dtype, limits, scratch)
+
+
+def _refuse_repeats(digests: dict[str, str]) -> None:
+    """Two inputs with the same bytes (a copy under another name) would count one draw twice."""
+    seen: dict[str, str] = {}
+    for role, digest in digests.items():
+        if (other := seen.setdefault(digest, role)) != role:
+            raise VectorOpError(
+                f"{other.replace('_', ' ')} and {role.replace('_', ' ')} are the same bytes "
+                f"(sha256 {digest[:12]}…): each vector counts once in a mean"
+            )
 
 
 def _mean_piece(xs: Sequence[np.ndarray], dtype: str, scratch: _Scratch) -> np.ndarray:
