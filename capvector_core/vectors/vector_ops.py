@@ -1054,8 +1054,8 @@ def _check_vectors_match(vecs: Sequence[Checkpoint]) -> None:
 def _mean_meta(vecs: Sequence[Checkpoint], method: str, density: float) -> dict[str, str]:
     """A mean's metadata: its method, and what its inputs agree on (partial, filters, their base)."""
     by_content = all("capvector.base_content_sha256" in v.metadata for v in vecs)  # else by files
-    key = "capvector.base_content_sha256" if by_content else "capvector.base_sha256"
-    bases = _bases_named(vecs, key)
+    base_key = "capvector.base_content_sha256" if by_content else "capvector.base_sha256"
+    bases = _bases_named(vecs, base_key)
     partial = any(json.loads(v.metadata.get("capvector.partial", "false")) for v in vecs)
     meta = {
         "capvector.kind": "vector",
@@ -1072,7 +1072,7 @@ def _mean_meta(vecs: Sequence[Checkpoint], method: str, density: float) -> dict[
         if len(values) == 1 and None not in values:
             meta[key] = values.pop()
     if bases:
-        meta[key] = next(iter(bases))
+        meta[base_key] = next(iter(bases))
         if by_content and (files := vecs[0].metadata.get("capvector.base_sha256")):
             meta["capvector.base_sha256"] = files
     return meta
