@@ -242,15 +242,82 @@ def _checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
 
 
 class _Run:
-    """State of one training invocation (kept together so checkpointing sees all of it)."""
+    """State of one training invocation (kept together so checkpointing sees all of it), and the steps
+    of its loop: schedule, loss, clipping, and the bookkeeping after each step."""
 
-    def __init__(self, policy, objective, optimizer, generator, sampling, config, run_dir, device, origin):
-        self.policy, self.objective, self.optimizer = policy, objective, optimizer
-        self.generator, self.config, self.run_dir, self.device = generator, config, run_dir, device
-        self.sampling = sampling  # the policy's own randomness (Policy.generator), on `device`
-        self.origin = origin
+    def __init__(self, policy, objective, dataset, config, run_dir, device, extra_losses):
+        """On `device` in train mode, with a fresh optimizer and the run's seeded generators."""
+        policy.to(device).train()
+        # the policy's, then the heads': the order the gradient norm sums in (bit for bit)
+        self.params = [p for p in policy.parameters() if p.requires_grad]
+        if objective is not None:
+            objective.to(device).train()
+            self.params += list(objective.parameters())
+        self.optimizer = torch.optim.AdamW(_param_groups(self.params, config.weight_decay), lr=config.lr)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        # the policy's own randomness (Policy.generator), on `device`
+        self.sampling = torch.Generator(device=device).manual_seed(_stream_seed(config.seed, "policy"))
+        self.origin = {"data": str(getattr(dataset, "content_hash", None)), "start": _weights_digest(policy)}
+        self.policy, self.objective, self.extra_losses = policy, objective, extra_losses
+        self.config, self.run_dir, self.device = config, run_dir, device
         self.step = 0
         self.train_seconds = 0.0
+        self.lap_start = 0.0  # when the timed stretch now running began (time.perf_counter)
+
+    def schedule(self, step: int) -> float:
+        """Set the learning rate of 0-based `step` (a pure function of it: nothing to resume)."""
+        lr = lr_at(step, self.config)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        return lr
+
+    def loss(self, batch: Mapping, curve: _Curve) -> tuple[torch.Tensor, torch.Tensor]:
+        """The step's total loss, and the values of it and its terms: the policy's, the objective's, the
+        extra losses'. The first step names the curve's columns (a clash is refused before a NaN)."""
+        out = self.policy.compute_loss(batch, self.objective.feature_names if self.objective else ())
+        terms = dict(out.terms)
+        if self.objective is not None:
+            terms[self.objective.name] = _aux_term(
+                self.objective, self.config.aux.weight, out.features, batch
+            )
+        for name, fn in self.extra_losses.items():
+            terms[name] = fn(self.policy)
+        curve.name_columns(out.terms, self.objective, self.extra_losses)
+        return _total_loss(terms, self.step)
+
+    def clip_gradients(self) -> torch.Tensor:
+        """Clip to ``grad_clip`` (when set); the global gradient norm before clipping, for the curve."""
+        if self.config.grad_clip is not None:
+            return torch.nn.utils.clip_grad_norm_(self.params, self.config.grad_clip)
+        return torch.linalg.vector_norm(
+            torch.stack([p.grad.norm() for p in self.params if p.grad is not None])
+        )
+
+    def after_step(self, curve: _Curve, lr: float, on_checkpoint: CheckpointHook | None) -> None:
+        """A curve row, a snapshot and a checkpoint, each when the step just done is due one."""
+        done = self.step == self.config.steps
+        if self.step % self.config.log_every == 0 or done:
+            self.lap()
+            curve.write_row(self.step, lr, self.train_seconds)
+        if self.step in self.config.snapshot_steps:
+            save_policy(self.policy, snapshot_path(self.run_dir, self.step))
+        if self.step % self.config.checkpoint_every == 0 or done:
+            self.checkpoint(curve, on_checkpoint)
+
+    def lap(self) -> None:
+        """Add the time since the last lap to ``train_seconds`` and start the next."""
+        now = time.perf_counter()
+        self.train_seconds += now - self.lap_start
+        self.lap_start = now
+
+    def checkpoint(self, curve: _Curve, on_checkpoint: CheckpointHook | None) -> None:
+        """A resumable checkpoint, the curve durable up to it; writing it and the hook are not timed."""
+        self.lap()
+        curve.sync()
+        saved = self.save()
+        if on_checkpoint is not None:
+            on_checkpoint(self.step, saved)
+        self.lap_start = time.perf_counter()
 
     def save(self) -> Path:
         """Write the checkpoint of this step (once) and return its folder."""
@@ -458,14 +525,52 @@ def train(
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     extra_losses = dict(extra_losses or {})
+    device, execution = _set_up_torch(config)
+    objective = _objective(policy, dataset, config, extra_losses)
+    n, make_batch = _batcher(policy, objective, dataset, config, device)
+    run = _Run(policy, objective, dataset, config, run_dir, device, extra_losses)
+
+    curve_path = run_dir / "loss_curve.jsonl"
+    passed_over = run.resume(set(config.snapshot_steps), curve_path)
+    start = run.step
+    _truncate_curve(curve_path, start)
+    t_start = run.lap_start = time.perf_counter()
+    _report_start(progress, start, config.steps, passed_over)
+    with open(curve_path, "a") as file, _drawing_from(policy, run.sampling):
+        curve = _Curve(file, device, progress, config.steps)
+        for step in range(start, config.steps):
+            lr = run.schedule(step)
+            batch = make_batch(torch.randint(n, (config.batch_size,), generator=run.generator))
+            total, values = run.loss(batch, curve)
+            run.optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            grad_norm = run.clip_gradients()
+            run.optimizer.step()
+            run.step = step + 1
+            curve.add(values, grad_norm)
+            run.after_step(curve, lr, on_checkpoint)
+    elapsed = time.perf_counter() - t_start
+    return _save_result(run, curve_path, curve.last_loss, start, elapsed, execution)
+
+
+def _set_up_torch(config: TrainConfig) -> tuple[torch.device, dict[str, Any]]:
+    """Threads, device and the global RNG's seed (for what draws from it: the policy draws from its
+    own); returns the device and where this invocation trains (run_environment)."""
     if config.num_threads:
         torch.set_num_threads(config.num_threads)
     device = resolve_device(config.device)
     execution = run_environment(device)
-    torch.manual_seed(config.seed)  # for what draws from the global RNG (the policy draws from its own)
+    torch.manual_seed(config.seed)
+    return device, execution
 
+
+def _objective(
+    policy: Policy, dataset: Any, config: TrainConfig, extra_losses: Mapping
+) -> AuxObjective | None:
+    """The auxiliary objective (None without one), once the loss names and the dataset are checked; its
+    heads come from a generator of their own, so the global RNG is left as is."""
     objective = None
-    if config.aux is not None:  # its heads from a generator of their own: the global RNG is left as is
+    if config.aux is not None:
         objective = build_objective(
             config.aux.name, policy.feature_specs(), config.aux.params, seed=config.seed
         )
@@ -474,120 +579,105 @@ def train(
     if clash:
         raise ValueError(f"extra loss name(s) {clash} collide with built-in loss terms {sorted(reserved)}")
     _check_dataset(dataset, policy, objective, config.batch_size)
+    return objective
 
+
+def _batcher(
+    policy: Policy, objective: AuxObjective | None, dataset: Any, config: TrainConfig, device: torch.device
+) -> tuple[int, Callable[[torch.Tensor], Mapping]]:
+    """Fit the normalizer (if asked, or the policy has none) and the objective to the data; the dataset's
+    size and the policy's batch maker, with the fields the objective reads."""
     tensors = dataset.tensors
     if config.fit_normalizer or (config.fit_normalizer is None and not policy.normalizer_fitted):
         policy.fit_normalizer(tensors)
     if objective is not None:
         objective.fit(tensors)
-    n, make_batch = policy.make_batcher(
+    return policy.make_batcher(
         dataset,
         device,
         fields=objective.required_fields() if objective else (),
         horizon=objective.horizon if objective else None,
     )
-    features = objective.feature_names if objective else ()
-    snapshot_at = set(config.snapshot_steps)
 
-    policy.to(device).train()
-    params = [p for p in policy.parameters() if p.requires_grad]
-    if objective is not None:
-        objective.to(device).train()
-        params += list(objective.parameters())
-    optimizer = torch.optim.AdamW(_param_groups(params, config.weight_decay), lr=config.lr)
-    generator = torch.Generator().manual_seed(config.seed)
-    sampling = torch.Generator(device=device).manual_seed(_stream_seed(config.seed, "policy"))
-    origin = {"data": str(getattr(dataset, "content_hash", None)), "start": _weights_digest(policy)}
-    run = _Run(policy, objective, optimizer, generator, sampling, config, run_dir, device, origin)
 
-    curve_path = run_dir / "loss_curve.jsonl"
-    passed_over = run.resume(snapshot_at, curve_path)
-    start = run.step
-    _truncate_curve(curve_path, start)
-
-    names: list[str] = []  # loss, the policy's terms, the objective's, the extra losses, grad_norm
-    window = torch.zeros(0, dtype=torch.float64, device=device)
-    window_count = 0
-    last_loss = float("nan")
-    t_start = time.perf_counter()
-    t_segment = t_start
+def _report_start(progress: ProgressReport | None, step: int, steps: int, passed_over: str) -> None:
     if progress is not None:
-        how = "resumed" if run.step else "started"
-        progress(run.step, config.steps, f"{how} (passed over {passed_over})" if passed_over else how)
-    with open(curve_path, "a") as curve, _drawing_from(policy, sampling):
-        while run.step < config.steps:
-            step = run.step
-            lr = lr_at(step, config)
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-            batch = make_batch(torch.randint(n, (config.batch_size,), generator=generator))
-            out = policy.compute_loss(batch, features)
-            terms = dict(out.terms)
-            if objective is not None and config.aux.weight:
-                terms[objective.name] = config.aux.weight * objective(out.features, batch)
-            elif objective is not None:  # weight 0: logged, not differentiated (see _weighted_zero)
-                terms[objective.name] = _weighted_zero(objective, out.features, batch)
-            for name, fn in extra_losses.items():
-                terms[name] = fn(policy)
-            if not names:
-                names = _term_names(out.terms, objective, extra_losses)
-                window = torch.zeros(len(names), dtype=torch.float64, device=device)
-            total = torch.stack(list(terms.values())).sum()
-            values = torch.stack([total.detach(), *(t.detach() for t in terms.values())])
-            if not bool(torch.isfinite(values).all()):
-                bad = [
-                    k for k, v in zip(["loss", *terms], values.tolist(), strict=True) if not math.isfinite(v)
-                ]
-                raise FloatingPointError(
-                    f"non-finite loss at step {step}: term(s) {bad} (values {values.tolist()})"
-                )
-            optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            if config.grad_clip is not None:
-                grad_norm = torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
-            else:
-                grad_norm = torch.linalg.vector_norm(
-                    torch.stack([p.grad.norm() for p in params if p.grad is not None])
-                )
-            optimizer.step()
-            window += torch.cat([values, grad_norm.detach().reshape(1)]).double()
-            window_count += 1
-            run.step += 1
-            done = run.step == config.steps
-            if run.step % config.log_every == 0 or done:
-                now = time.perf_counter()
-                run.train_seconds += now - t_segment
-                t_segment = now
-                means = (window / window_count).tolist()
-                row = {"step": run.step, "lr": lr, "time": round(run.train_seconds, 4)}
-                row.update(dict(zip(names, means, strict=True)))
-                curve.write(json.dumps(row) + "\n")
-                curve.flush()
-                last_loss = means[0]
-                window.zero_()
-                window_count = 0
-                if progress is not None:
-                    progress(run.step, config.steps, f"loss {last_loss:.4f}")
-            if run.step in snapshot_at:
-                save_policy(policy, snapshot_path(run_dir, run.step))
-            if run.step % config.checkpoint_every == 0 or done:
-                run.train_seconds += time.perf_counter() - t_segment
-                curve.flush()
-                os.fsync(curve.fileno())
-                saved = run.save()
-                if on_checkpoint is not None:
-                    on_checkpoint(run.step, saved)
-                t_segment = time.perf_counter()
-    elapsed = time.perf_counter() - t_start
-    done_steps = config.steps - start
+        how = "resumed" if step else "started"
+        progress(step, steps, f"{how} (passed over {passed_over})" if passed_over else how)
 
+
+def _aux_term(objective: AuxObjective, weight: float, features: Mapping, batch: Mapping) -> torch.Tensor:
+    """The objective's weighted loss; of weight 0, logged but not differentiated (see _weighted_zero)."""
+    if weight:
+        return weight * objective(features, batch)
+    return _weighted_zero(objective, features, batch)
+
+
+def _total_loss(terms: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The terms' sum, and the detached values of it and each term; a non-finite one stops the run,
+    naming the term(s)."""
+    total = torch.stack(list(terms.values())).sum()
+    values = torch.stack([total.detach(), *(t.detach() for t in terms.values())])
+    if not bool(torch.isfinite(values).all()):
+        bad = [k for k, v in zip(["loss", *terms], values.tolist(), strict=True) if not math.isfinite(v)]
+        raise FloatingPointError(f"non-finite loss at step {step}: term(s) {bad} (values {values.tolist()})")
+    return total, values
+
+
+class _Curve:
+    """The loss curve: each step's terms and grad norm summed on the device (no sync per step), their
+    means written as one row of ``loss_curve.jsonl`` per log interval."""
+
+    def __init__(self, file, device: torch.device, progress: ProgressReport | None, steps: int):
+        self.file, self.device, self.progress, self.steps = file, device, progress, steps
+        self.names: list[str] = []  # loss, the policy's terms, the objective's, the extra losses, grad_norm
+        self.window = torch.zeros(0, dtype=torch.float64, device=device)
+        self.count = 0
+        self.last_loss = float("nan")
+
+    def name_columns(self, policy_terms: Mapping, objective: AuxObjective | None, extra: Mapping) -> None:
+        if not self.names:
+            self.names = _term_names(policy_terms, objective, extra)
+            self.window = torch.zeros(len(self.names), dtype=torch.float64, device=self.device)
+
+    def add(self, values: torch.Tensor, grad_norm: torch.Tensor) -> None:
+        self.window += torch.cat([values, grad_norm.detach().reshape(1)]).double()
+        self.count += 1
+
+    def write_row(self, step: int, lr: float, seconds: float) -> None:
+        """The means since the last row; reported to ``progress`` with the mean loss."""
+        means = (self.window / self.count).tolist()
+        row = {"step": step, "lr": lr, "time": round(seconds, 4)}
+        row.update(dict(zip(self.names, means, strict=True)))
+        self.file.write(json.dumps(row) + "\n")
+        self.file.flush()
+        self.last_loss = means[0]
+        self.window.zero_()
+        self.count = 0
+        if self.progress is not None:
+            self.progress(step, self.steps, f"loss {self.last_loss:.4f}")
+
+    def sync(self) -> None:
+        """On disk before a checkpoint: a resume finds the rows up to it."""
+        self.file.flush()
+        os.fsync(self.file.fileno())
+
+
+def _save_result(
+    run: _Run, curve_path: Path, last_loss: float, start: int, elapsed: float, execution: dict[str, Any]
+) -> TrainResult:
+    """Write the final policy, the aux heads (with an objective) and ``result.json``; return the result."""
+    config, run_dir = run.config, run.run_dir
+    done_steps = config.steps - start
     meta = {"capvector.train_config": config.model_dump_json(), "capvector.steps": str(config.steps)}
-    weights = save_policy(policy, run_dir / "policy.safetensors", metadata=meta)
+    weights = save_policy(run.policy, run_dir / "policy.safetensors", metadata=meta)
     aux_path = None
-    if objective is not None:
+    if run.objective is not None:
         aux_path = run_dir / "aux_heads.safetensors"
-        save_tensors_atomic(_cpu_state(objective), aux_path, {"capvector.aux": config.aux.model_dump_json()})
-    if math.isnan(last_loss):
+        save_tensors_atomic(
+            _cpu_state(run.objective), aux_path, {"capvector.aux": config.aux.model_dump_json()}
+        )
+    if math.isnan(last_loss):  # no row this invocation (resumed at the end): the curve's last
         last_loss = _last_logged_loss(curve_path)
     result = TrainResult(
         weights_path=weights,
@@ -599,7 +689,7 @@ def train(
         steps_per_s=done_steps / elapsed if done_steps and elapsed > 0 else 0.0,
         samples_per_s=done_steps * config.batch_size / elapsed if done_steps and elapsed > 0 else 0.0,
         final_loss=last_loss,
-        snapshots={s: snapshot_path(run_dir, s) for s in sorted(snapshot_at)},
+        snapshots={s: snapshot_path(run_dir, s) for s in sorted(config.snapshot_steps)},
         execution=execution,
     )
     (run_dir / "result.json").write_text(result.model_dump_json(indent=1))
