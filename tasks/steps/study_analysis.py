@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -336,6 +337,37 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
     dots = {(a, b): stable_dot(flat[a], flat[b]) for a, b in with_self}
     norms = {d: math.sqrt(dots[d, d]) for d in draws}
 
+    values, intervals = _signal_fraction(draws, dots, norms)
+    noise = [
+        math.sqrt(stable_dot(fts[a] - fts[b], fts[a] - fts[b]))
+        for a, b in itertools.combinations(draws, 2)
+        if a in fts and b in fts
+    ]
+    values["seed_noise_norm"] = float(np.mean(noise)) if noise else math.nan
+    reference = ""
+    if pretrained:
+        cosines = _ft_reference_cosines(pretrained[0], names, draws, flat, fts, norms)
+        values["cos_ft_reference"] = float(np.mean(cosines))
+        reference = f"; cos(γ^d, θ_ft^d − θ_pt) {', '.join(f'{c:+.2f}' for c in cosines)}"
+    replicates = _replicate_agreement(workspace, inputs, names, len(draws), values)
+    holds = None if "rho_low" not in values else True if values["rho_low"] > 0 else None
+    detail = (
+        f"ρ̂ {values['rho']:.2f}{intervals or ' (an interval needs 3 draws)'}; so the mean of these "
+        f"{len(draws)} draws has cos {values['mean_vector_cos']:.2f} with the signal; ‖γ‖ "
+        f"{', '.join(f'{n:.2f}' for n in norms.values())} against ‖θ_ft^d − θ_ft^d′‖ "
+        f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}{reference}{replicates}"
+    )
+    return Precondition(
+        key="e", claim=claim, holds=holds, detail=detail, detail_values=values, measured=len(draws) >= 3
+    )
+
+
+def _signal_fraction(
+    draws: list[int], dots: dict[tuple[int, int], float], norms: dict[int, float]
+) -> tuple[dict[str, float], str]:
+    """ρ̂, ‖ŝ‖, the draws' norms and pairwise cosines, with jackknife intervals from 3 draws on; the
+    detail's text for the intervals ("" without them)."""
+
     def signal(kept: list[int]) -> tuple[float, float]:
         """(ρ̂, ‖ŝ‖²) over the pairs of `kept` draws."""
         pairs = list(itertools.combinations(kept, 2))
@@ -355,45 +387,38 @@ def _reproducibility(workspace: Workspace, inputs: dict[str, str]) -> Preconditi
         f"cos_draws_{a}_{b}": dots[a, b] / (norms[a] * norms[b]) if norms[a] * norms[b] else math.nan
         for a, b in itertools.combinations(draws, 2)
     }
-    intervals = ""
-    if len(draws) >= 3:
-        jack = np.array([signal([d for d in draws if d != left]) for left in draws])
-        half = t_quantile(0.975, len(draws) - 1) * np.sqrt((len(draws) - 1) * jack.var(axis=0))
-        values |= {"rho_low": rho - half[0], "rho_high": rho + half[0]}
-        low, high = square - half[1], square + half[1]
-        values |= {"signal_norm_low": math.sqrt(max(low, 0.0)), "signal_norm_high": math.sqrt(max(high, 0.0))}
-        intervals = (
-            f" [{values['rho_low']:+.2f}, {values['rho_high']:+.2f}]; ‖ŝ‖ {values['signal_norm']:.2f} "
-            f"[{values['signal_norm_low']:.2f}, {values['signal_norm_high']:.2f}] (95 % jackknife over draws)"
-        )
-    noise = [
-        math.sqrt(stable_dot(fts[a] - fts[b], fts[a] - fts[b]))
-        for a, b in itertools.combinations(draws, 2)
-        if a in fts and b in fts
-    ]
-    values["seed_noise_norm"] = float(np.mean(noise)) if noise else math.nan
-    reference = ""
-    if pretrained:
-        base = np.concatenate(list(_flat(Checkpoint(pretrained[0]), names).values()))
-        cosines = []
-        for d in draws:
-            if d in fts:
-                delta = fts[d] - base
-                scale = math.sqrt(stable_dot(delta, delta)) * norms[d]
-                cosines.append(stable_dot(flat[d], delta) / scale if scale else math.nan)
-        values["cos_ft_reference"] = float(np.mean(cosines))
-        reference = f"; cos(γ^d, θ_ft^d − θ_pt) {', '.join(f'{c:+.2f}' for c in cosines)}"
-    replicates = _replicate_agreement(workspace, inputs, names, len(draws), values)
-    holds = None if "rho_low" not in values else True if values["rho_low"] > 0 else None
-    detail = (
-        f"ρ̂ {rho:.2f}{intervals or ' (an interval needs 3 draws)'}; so the mean of these {len(draws)} draws "
-        f"has cos {values['mean_vector_cos']:.2f} with the signal; ‖γ‖ "
-        f"{', '.join(f'{n:.2f}' for n in norms.values())} against ‖θ_ft^d − θ_ft^d′‖ "
-        f"{', '.join(f'{n:.2f}' for n in noise) or 'not measured'}{reference}{replicates}"
+    if len(draws) < 3:
+        return values, ""
+    jack = np.array([signal([d for d in draws if d != left]) for left in draws])
+    half = t_quantile(0.975, len(draws) - 1) * np.sqrt((len(draws) - 1) * jack.var(axis=0))
+    values |= {"rho_low": rho - half[0], "rho_high": rho + half[0]}
+    low, high = square - half[1], square + half[1]
+    values |= {"signal_norm_low": math.sqrt(max(low, 0.0)), "signal_norm_high": math.sqrt(max(high, 0.0))}
+    intervals = (
+        f" [{values['rho_low']:+.2f}, {values['rho_high']:+.2f}]; ‖ŝ‖ {values['signal_norm']:.2f} "
+        f"[{values['signal_norm_low']:.2f}, {values['signal_norm_high']:.2f}] (95 % jackknife over draws)"
     )
-    return Precondition(
-        key="e", claim=claim, holds=holds, detail=detail, detail_values=values, measured=len(draws) >= 3
-    )
+    return values, intervals
+
+
+def _ft_reference_cosines(
+    pretrained: Path,
+    names: list[str],
+    draws: list[int],
+    flat: dict[int, np.ndarray],
+    fts: dict[int, np.ndarray],
+    norms: dict[int, float],
+) -> list[float]:
+    """cos(γ^d, θ_ft^d − θ_pt) for each draw with a standard run: how far γ points along plain
+    fine-tuning's own update."""
+    base = np.concatenate(list(_flat(Checkpoint(pretrained), names).values()))
+    cosines = []
+    for d in draws:
+        if d in fts:
+            delta = fts[d] - base
+            scale = math.sqrt(stable_dot(delta, delta)) * norms[d]
+            cosines.append(stable_dot(flat[d], delta) / scale if scale else math.nan)
+    return cosines
 
 
 def _replicate_agreement(

@@ -33,7 +33,7 @@ from capvector.core.adapters.lora_sp import LoraSPConfig
 from capvector.core.policies.base import AnyPolicyConfig, Policy, build_policy, load_policy, save_policy
 from capvector.core.simulation.demos import DemoDataset
 from capvector.core.training.orthogonal import OrthogonalRegularizer
-from capvector.core.training.trainer import TrainConfig, train
+from capvector.core.training.trainer import TrainConfig, TrainResult, train
 from capvector.tasks.adapters import ADAPTERS
 from capvector.tasks.runtime.caching import cached_step, selected_by
 from capvector.tasks.runtime.prefect_task import pipeline_task
@@ -160,111 +160,172 @@ def _calibration_batches(
 
 def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
     cfg = TrainStepConfig.model_validate(config)
-    form = ADAPTERS[cfg.adapter]
-    if cfg.train.snapshot_steps and not form.snapshots:
+    if cfg.train.snapshot_steps and not ADAPTERS[cfg.adapter].snapshots:
         raise ValueError(f"step {step!r}: train.snapshot_steps needs full fine-tuning (adapter 'full')")
     if "data" not in inputs:
         raise ValueError(f"step {step!r}: training needs a `data` input (a dataset artifact id)")
 
     def produce(key: str) -> str:
-        dataset = DemoDataset.load(workspace.path(inputs["data"]))
-        model = _initial_policy(workspace, cfg, inputs.get("init"))
-        form.apply(model, cfg)
-        extra: dict[str, Any] = {}
-        regularizer = _orthogonal(workspace, model, cfg, inputs)
-        lam = {}
-        if regularizer is not None:
-            if cfg.orthogonal.scale == "action_gradient":
-                scale = action_gradient_scale(
-                    model, dataset, regularizer, cfg.train.seed, cfg.train.batch_size
-                )
-                regularizer.weight = cfg.orthogonal.weight * scale
-                lam["gradient_ratio"] = scale  # ‖∇ action loss‖/‖γ‖ at the start: λ = weight × this
-            lam["orthogonal_lambda"] = regularizer.weight
-            extra["orthogonal"] = regularizer
-        extra |= form.extra_losses()
-        trainable = lora.trainable_parameter_count(model)
-        run_dir = workspace.run_dir(key)
-        mirror = workspace.checkpoint_mirror(key)
-        on_checkpoint = None
-        # capvector.tasks.runtime.scratch: resume from another machine's checkpoint, copy ours
-        if mirror is not None:
-            mirror.restore(run_dir)
-            on_checkpoint = functools.partial(mirror.save, run_dir=run_dir)
-        result = train(
-            model,
-            dataset,
-            cfg.train,
-            run_dir,
-            extra_losses=extra,
-            progress=progress_printer(step, "steps"),
-            on_checkpoint=on_checkpoint,
-        )
-
-        summary = {
-            "step": step,
-            "steps": result.steps,
-            "steps_per_s": result.steps_per_s,
-            "samples_per_s": result.samples_per_s,
-            "final_loss": result.final_loss,
-            "resumed_from_step": result.resumed_from_step,
-            "trainable_parameters": trainable,
-            "adapter": cfg.adapter,
-            **lam,
-        }
-        with workspace.scratch() as tmp:
-            calibration = lambda: _calibration_batches(model, dataset, cfg.train.seed)  # noqa: E731
-            adapter_dir = form.finish(model, tmp / "adapter", calibration, summary)
-            weights = save_policy(model, tmp / "model.safetensors", {"capvector.step": step})
-            parents = [(inputs["data"], "data")]
-            if "init" in inputs:
-                parents.append((inputs["init"], "init"))
-            if "vector" in inputs:
-                parents.append((inputs["vector"], "regularized_by"))
-            parents += selected_by(inputs)
-            meta = provenance()
-            if adapter_dir is not None:  # first: the checkpoint (the commit point) names it as a parent
-                adapter = workspace.api.register_dir(
-                    adapter_dir,
-                    kind="adapter",
-                    name=f"{step} adapter",
-                    config={"adapter": cfg.adapter, "summary": summary, "execution": result.execution},
-                    parents=parents,
-                    **meta,
-                )
-                parents.append((adapter.id, "adapter"))
-            snapshots = {}
-            for budget, path in result.snapshots.items():  # before the checkpoint, which names them
-                snapshot = workspace.api.register_file(
-                    path,
-                    kind="checkpoint",
-                    name=f"{step} @ {budget} steps",
-                    config={
-                        "train_step": cfg.model_dump(mode="json"),
-                        "budget": budget,
-                        "of_run": key,
-                        "execution": result.execution,
-                    },
-                    parents=parents,
-                    **meta,
-                )
-                snapshots[str(budget)] = snapshot.id
-            record_config = {
-                "train_step": cfg.model_dump(mode="json"),
-                "cache_key": key,
-                "summary": summary,
-                "execution": result.execution,
-                "curve": _curve_rows(result.loss_curve_path),
-                "snapshots": snapshots,
-            }
-            parents += [(i, "snapshot", {"budget": int(b)}) for b, i in snapshots.items()]
-            checkpoint = workspace.api.register_file(
-                weights, kind="checkpoint", name=step, config=record_config, parents=parents, **meta
-            )
-        workspace.finish_run_dir(key)
-        return checkpoint.id
+        return _train_checkpoint(workspace, step, inputs, cfg, key)
 
     return cached_step(workspace, "train", inputs, cfg, produce, step=step)
+
+
+def _train_checkpoint(
+    workspace: Workspace, step: str, inputs: dict[str, str], cfg: TrainStepConfig, key: str
+) -> str:
+    """Train, then register the checkpoint; the run folder is kept until the checkpoint is committed."""
+    form = ADAPTERS[cfg.adapter]
+    dataset = DemoDataset.load(workspace.path(inputs["data"]))
+    model = _initial_policy(workspace, cfg, inputs.get("init"))
+    form.apply(model, cfg)
+    extra, lam = _orthogonal_loss(workspace, model, dataset, cfg, inputs)
+    extra |= form.extra_losses()
+    trainable = lora.trainable_parameter_count(model)
+    result = _train_resumable(workspace, step, key, model, dataset, cfg, extra)
+    summary = {
+        "step": step,
+        "steps": result.steps,
+        "steps_per_s": result.steps_per_s,
+        "samples_per_s": result.samples_per_s,
+        "final_loss": result.final_loss,
+        "resumed_from_step": result.resumed_from_step,
+        "trainable_parameters": trainable,
+        "adapter": cfg.adapter,
+        **lam,
+    }
+    checkpoint_id = _register_checkpoint(workspace, step, inputs, cfg, key, model, dataset, result, summary)
+    workspace.finish_run_dir(key)
+    return checkpoint_id
+
+
+def _orthogonal_loss(
+    workspace: Workspace, model: Policy, dataset: DemoDataset, cfg: TrainStepConfig, inputs: dict[str, str]
+) -> tuple[dict[str, Any], dict[str, float]]:
+    """The orthogonal regularizer as an extra loss (none without `orthogonal`), and the λ it ended up
+    with for the run summary."""
+    regularizer = _orthogonal(workspace, model, cfg, inputs)
+    if regularizer is None:
+        return {}, {}
+    lam = {}
+    if cfg.orthogonal.scale == "action_gradient":
+        scale = action_gradient_scale(model, dataset, regularizer, cfg.train.seed, cfg.train.batch_size)
+        regularizer.weight = cfg.orthogonal.weight * scale
+        lam["gradient_ratio"] = scale  # ‖∇ action loss‖/‖γ‖ at the start: λ = weight × this
+    lam["orthogonal_lambda"] = regularizer.weight
+    return {"orthogonal": regularizer}, lam
+
+
+def _train_resumable(
+    workspace: Workspace,
+    step: str,
+    key: str,
+    model: Policy,
+    dataset: DemoDataset,
+    cfg: TrainStepConfig,
+    extra: dict[str, Any],
+) -> TrainResult:
+    """`train` in the key's run folder; with a checkpoint mirror (capvector.tasks.runtime.scratch) it
+    resumes from another machine's checkpoint and copies ours."""
+    run_dir = workspace.run_dir(key)
+    mirror = workspace.checkpoint_mirror(key)
+    on_checkpoint = None
+    if mirror is not None:
+        mirror.restore(run_dir)
+        on_checkpoint = functools.partial(mirror.save, run_dir=run_dir)
+    return train(
+        model,
+        dataset,
+        cfg.train,
+        run_dir,
+        extra_losses=extra,
+        progress=progress_printer(step, "steps"),
+        on_checkpoint=on_checkpoint,
+    )
+
+
+def _register_checkpoint(
+    workspace: Workspace,
+    step: str,
+    inputs: dict[str, str],
+    cfg: TrainStepConfig,
+    key: str,
+    model: Policy,
+    dataset: DemoDataset,
+    result: TrainResult,
+    summary: dict[str, Any],
+) -> str:
+    """Register the adapter and snapshots, then the checkpoint that names them (the commit point)."""
+    form = ADAPTERS[cfg.adapter]
+    with workspace.scratch() as tmp:
+        calibration = lambda: _calibration_batches(model, dataset, cfg.train.seed)  # noqa: E731
+        adapter_dir = form.finish(model, tmp / "adapter", calibration, summary)
+        weights = save_policy(model, tmp / "model.safetensors", {"capvector.step": step})
+        parents = _input_parents(inputs)
+        meta = provenance()
+        if adapter_dir is not None:
+            adapter = workspace.api.register_dir(
+                adapter_dir,
+                kind="adapter",
+                name=f"{step} adapter",
+                config={"adapter": cfg.adapter, "summary": summary, "execution": result.execution},
+                parents=parents,
+                **meta,
+            )
+            parents.append((adapter.id, "adapter"))
+        snapshots = _register_snapshots(workspace, step, cfg, key, result, parents, meta)
+        record_config = {
+            "train_step": cfg.model_dump(mode="json"),
+            "cache_key": key,
+            "summary": summary,
+            "execution": result.execution,
+            "curve": _curve_rows(result.loss_curve_path),
+            "snapshots": snapshots,
+        }
+        parents += [(i, "snapshot", {"budget": int(b)}) for b, i in snapshots.items()]
+        checkpoint = workspace.api.register_file(
+            weights, kind="checkpoint", name=step, config=record_config, parents=parents, **meta
+        )
+    return checkpoint.id
+
+
+def _input_parents(inputs: dict[str, str]) -> list[tuple[Any, ...]]:
+    """The checkpoint's lineage from its inputs: data, θ it started from, γ it was regularized by."""
+    parents: list[tuple[Any, ...]] = [(inputs["data"], "data")]
+    if "init" in inputs:
+        parents.append((inputs["init"], "init"))
+    if "vector" in inputs:
+        parents.append((inputs["vector"], "regularized_by"))
+    return parents + selected_by(inputs)
+
+
+def _register_snapshots(
+    workspace: Workspace,
+    step: str,
+    cfg: TrainStepConfig,
+    key: str,
+    result: TrainResult,
+    parents: list[tuple[Any, ...]],
+    meta: dict[str, Any],
+) -> dict[str, str]:
+    """Budget -> id of each checkpoint kept on the way, registered before the final one, which names them."""
+    snapshots = {}
+    for budget, path in result.snapshots.items():
+        snapshot = workspace.api.register_file(
+            path,
+            kind="checkpoint",
+            name=f"{step} @ {budget} steps",
+            config={
+                "train_step": cfg.model_dump(mode="json"),
+                "budget": budget,
+                "of_run": key,
+                "execution": result.execution,
+            },
+            parents=parents,
+            **meta,
+        )
+        snapshots[str(budget)] = snapshot.id
+    return snapshots
 
 
 def snapshots_of(workspace: Workspace, checkpoint_id: str) -> dict[int, str]:
