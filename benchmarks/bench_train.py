@@ -55,7 +55,7 @@ def measure(policy_type: str, dataset, args, config: TrainConfig, work: Path) ->
     times: dict[str, list[float]] = {"ours": [], "plain": []}
     # untimed warm-up of both: the first call in a process pays one-time lazy imports inside torch
     warm = config.model_copy(update={"steps": 5, "warmup_steps": 1})
-    train(build_policy(spec, "cpu"), dataset, warm, work / f"warmup-{policy_type}", progress=False)
+    train(build_policy(spec, "cpu"), dataset, warm, work / f"warmup-{policy_type}", progress=None)
     plain_loop(build_policy(spec, "cpu"), dataset, warm)
     for r in range(args.rounds):
         order = ["ours", "plain"] if r % 2 == 0 else ["plain", "ours"]
@@ -64,7 +64,7 @@ def measure(policy_type: str, dataset, args, config: TrainConfig, work: Path) ->
             policy.load_state_dict(initial)
             start = time.perf_counter()
             if which == "ours":
-                train(policy, dataset, config, work / f"run-{policy_type}-{r}", progress=False)
+                train(policy, dataset, config, work / f"run-{policy_type}-{r}", progress=None)
             else:
                 plain_loop(policy, dataset, config)
             times[which].append(time.perf_counter() - start)
