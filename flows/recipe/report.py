@@ -149,6 +149,126 @@ def _learning_rate_section(workspace: Workspace, cells: list[tuple[str, dict[str
     return "\n".join(lines)
 
 
+def _figure_path(out: Path, name: str) -> Path:
+    """A figure's file beside the Markdown, named after it (`<stem>_<name>.png`)."""
+    return out.parent / f"{out.stem}_{name}.png"
+
+
+def _curves_figure(workspace: Workspace, table: Report, path: Path) -> Path | None:
+    """The training curve of each arm's first run, when its checkpoint recorded one."""
+    curves = {}
+    for arm, row in table.arms.items():
+        run = row.runs[0]
+        curve = workspace.api.get(run.checkpoint_id).config.get("curve")
+        if curve:
+            curves[f"{arm} ({run.label})"] = curve
+    return plot_curves(curves, path) if curves else None
+
+
+def _budget_points(
+    workspace: Workspace, table: Report, extra: dict[str, Report]
+) -> dict[str, list[tuple[int, float, float]]]:
+    """Arm -> (downstream steps, mean, std) over the reports that share the comparison's arms and seeds."""
+    points: dict[str, list[tuple[int, float, float]]] = {}
+    for tab in [table, *extra.values()]:
+        for arm, row in tab.arms.items():
+            main_row = table.arms.get(arm)
+            if main_row is None or row.overall.n != main_row.overall.n:
+                continue  # only budget variants of the comparison's own arms and seeds
+            steps = _trained_with(workspace, row.runs[0].checkpoint_id, "steps")
+            if steps:
+                points.setdefault(arm, []).append((steps, row.overall.mean, row.overall.std))
+    return points
+
+
+def _convergence_figure(
+    workspace: Workspace, table: Report, extra: dict[str, Report], path: Path
+) -> Path | None:
+    """Success against steps, only when the reports differ in downstream budget (else it is one point)."""
+    points = _budget_points(workspace, table, extra)
+    if len({p[0] for rows in points.values() for p in rows}) > 1:
+        return plot_convergence(points, path)
+    return None
+
+
+def _introduction(report_id: str, name: str, notes: str | None) -> str:
+    """The title and how to read every number: what the rates are over, and that ids trace to the data."""
+    return (
+        f"# capvector report `{report_id[:12]}` ({name})\n\n"
+        "Success rates in %, mean ± std over training seeds, final checkpoints only, test goal variations "
+        "(evaluation seeds, disjoint from demonstration and validation seeds). Every id is a catalogue id: "
+        "`capvector lineage ID` traces it to its data.\n\n" + (notes + "\n\n" if notes else "")
+    )
+
+
+def _comparison_section(workspace: Workspace, table: Report, figure: Path) -> str:
+    """The comparison table rendered here, with the measured speeds from the training records: a report's
+    content (its id) holds only what its checkpoints and scores determine, so its own `markdown` has no
+    timings."""
+    main_table = markdown_table(table, timings(workspace, table))
+    return f"## Comparison\n\n{main_table}\n![comparison]({figure.name})\n"
+
+
+def _extra_section(workspace: Workspace, title: str, report_id: str, tab: Report) -> str:
+    text = markdown_table(tab, timings(workspace, tab))
+    return f"\n## {title} (`{report_id[:12]}`)\n\n{text}"
+
+
+def _convergence_section(figure: Path | None) -> str:
+    if figure is None:
+        return ""
+    return f"\n## Success against training steps\n\n![convergence]({figure.name})\n"
+
+
+def _sweeps_sections(workspace: Workspace, sweep_ids: list[str]) -> str:
+    """Each α × λ grid in full, then the one-cell sweeps (how a learning rate is chosen) in one table."""
+    unique_ids = dict.fromkeys(sweep_ids)  # a repeated id is shown once
+    sweeps = [(sid, workspace.api.store.open_json(workspace.api.get(sid).id)) for sid in unique_ids]
+    parts = [_sweep_section(workspace, sid, doc) for sid, doc in sweeps if len(doc["grid"]) > 1]
+    cells = [(sid, doc) for sid, doc in sweeps if len(doc["grid"]) == 1]
+    if cells:
+        parts.append(_learning_rate_section(workspace, cells))
+    return "".join(parts)
+
+
+def _vector_section(workspace: Workspace, table: Report, path: Path) -> str:
+    """γ's size and direction with its figure, when the catalogue holds statistics of the runs' vector."""
+    vector_id = _vector_of(workspace, table)
+    stats = workspace.api.query("SELECT DISTINCT stats_id FROM vector_stats WHERE vector_id = ?", [vector_id])
+    if not vector_id or stats.empty:
+        return ""
+    stats_id = str(stats.iloc[0, 0])
+    rows = workspace.api.store.open_json(stats_id)["tensors"]
+    figure = plot_vector_stats(rows, path)
+    overall = next((r for r in rows if r.get("level") == "all"), None)
+    if not overall:
+        return ""
+    return (
+        f"\n## Capability vector γ `{vector_id[:12]}`\n\n"
+        f"‖γ‖ = {overall['l2']:.4g}, ‖γ‖/‖θ_pt‖ = {overall['rel_norm'] or 0:.3g}, "
+        f"cos(γ, θ_ft − θ_pt) = {overall['cosine_ref'] or 0:.3f}, "
+        f"sign agreement {overall['sign_agreement'] or 0:.3f} (statistics `{stats_id[:12]}`).\n\n"
+        f"![vector]({figure.name})\n"
+    )
+
+
+def _curves_section(figure: Path | None) -> str:
+    return f"\n## Training curves\n\n![curves]({figure.name})\n" if figure is not None else ""
+
+
+def _runs_section(tables: list[Report]) -> str:
+    """Every run with its checkpoint and evaluation ids, so each mean above can be traced to its runs."""
+    runs = ["| run | checkpoint | evaluation | success |", "|---|---|---|---|"]
+    for tab in tables:
+        for row in tab.arms.values():
+            for run in row.runs:
+                runs.append(
+                    f"| {run.label} | `{run.checkpoint_id[:12]}` | `{run.evaluation_id[:12]}` | "
+                    f"{100 * run.mean_success:.1f}% |"
+                )
+    return "\n## Runs\n\n" + "\n".join(runs) + "\n"
+
+
 def write_report(
     workspace: Workspace,
     report_id: str,
@@ -167,83 +287,20 @@ def write_report(
     record = workspace.api.get(report_id)
     table = load_report(workspace, record.id)
     out.parent.mkdir(parents=True, exist_ok=True)
-    stem = out.stem
-    figures = {"comparison": plot_comparison(table, out.parent / f"{stem}_comparison.png")}
+    comparison = plot_comparison(table, _figure_path(out, "comparison"))
     extra = {title: load_report(workspace, rid) for title, rid in (sections or {}).items()}
-
-    curves = {}
-    for arm, row in table.arms.items():
-        run = row.runs[0]
-        curve = workspace.api.get(run.checkpoint_id).config.get("curve")
-        if curve:
-            curves[f"{arm} ({run.label})"] = curve
-    if curves:
-        figures["curves"] = plot_curves(curves, out.parent / f"{stem}_curves.png")
-
-    points: dict[str, list[tuple[int, float, float]]] = {}
-    for tab in [table, *extra.values()]:
-        for arm, row in tab.arms.items():
-            main_row = table.arms.get(arm)
-            if main_row is None or row.overall.n != main_row.overall.n:
-                continue  # only budget variants of the comparison's own arms and seeds
-            steps = _trained_with(workspace, row.runs[0].checkpoint_id, "steps")
-            if steps:
-                points.setdefault(arm, []).append((steps, row.overall.mean, row.overall.std))
-    if len({p[0] for rows in points.values() for p in rows}) > 1:
-        figures["convergence"] = plot_convergence(points, out.parent / f"{stem}_convergence.png")
-
-    vector_section = ""
-    vector_id = _vector_of(workspace, table)
-    stats = workspace.api.query("SELECT DISTINCT stats_id FROM vector_stats WHERE vector_id = ?", [vector_id])
-    if vector_id and not stats.empty:
-        stats_id = str(stats.iloc[0, 0])
-        rows = workspace.api.store.open_json(stats_id)["tensors"]
-        figures["vector"] = plot_vector_stats(rows, out.parent / f"{stem}_vector.png")
-        overall = next((r for r in rows if r.get("level") == "all"), None)
-        if overall:
-            vector_section = (
-                f"\n## Capability vector γ `{vector_id[:12]}`\n\n"
-                f"‖γ‖ = {overall['l2']:.4g}, ‖γ‖/‖θ_pt‖ = {overall['rel_norm'] or 0:.3g}, "
-                f"cos(γ, θ_ft − θ_pt) = {overall['cosine_ref'] or 0:.3f}, "
-                f"sign agreement {overall['sign_agreement'] or 0:.3f} (statistics `{stats_id[:12]}`).\n\n"
-                f"![vector]({figures['vector'].name})\n"
-            )
-
-    runs = ["| run | checkpoint | evaluation | success |", "|---|---|---|---|"]
-    for tab in [table, *extra.values()]:
-        for row in tab.arms.values():
-            for run in row.runs:
-                runs.append(
-                    f"| {run.label} | `{run.checkpoint_id[:12]}` | `{run.evaluation_id[:12]}` | "
-                    f"{100 * run.mean_success:.1f}% |"
-                )
-    # Rendered here, with the measured speeds from the training records: a report's content (its id)
-    # holds only what its checkpoints and scores determine, so its own `markdown` has no timings.
-    main_table = markdown_table(table, timings(workspace, table))
+    curves = _curves_figure(workspace, table, _figure_path(out, "curves"))
+    convergence = _convergence_figure(workspace, table, extra, _figure_path(out, "convergence"))
+    vector = _vector_section(workspace, table, _figure_path(out, "vector"))
     parts = [
-        f"# capvector report `{record.id[:12]}` ({record.name})\n\n",
-        "Success rates in %, mean ± std over training seeds, final checkpoints only, test goal variations "
-        "(evaluation seeds, disjoint from demonstration and validation seeds). Every id is a catalogue id: "
-        "`capvector lineage ID` traces it to its data.\n\n",
-        notes + "\n\n" if notes else "",
-        f"## Comparison\n\n{main_table}\n![comparison]({figures['comparison'].name})\n",
+        _introduction(record.id, record.name, notes),
+        _comparison_section(workspace, table, comparison),
+        *(_extra_section(workspace, title, (sections or {})[title], tab) for title, tab in extra.items()),
+        _convergence_section(convergence),
+        _sweeps_sections(workspace, sweep_ids or []),
+        vector,
+        _curves_section(curves),
+        _runs_section([table, *extra.values()]),
     ]
-    for title, tab in extra.items():
-        text = markdown_table(tab, timings(workspace, tab))
-        parts.append(f"\n## {title} (`{(sections or {})[title][:12]}`)\n\n{text}")
-    if "convergence" in figures:
-        parts.append(
-            f"\n## Success against training steps\n\n![convergence]({figures['convergence'].name})\n"
-        )
-    unique_ids = dict.fromkeys(sweep_ids or [])  # a repeated id is shown once
-    sweeps = [(sid, workspace.api.store.open_json(workspace.api.get(sid).id)) for sid in unique_ids]
-    parts.extend(_sweep_section(workspace, sid, doc) for sid, doc in sweeps if len(doc["grid"]) > 1)
-    cells = [(sid, doc) for sid, doc in sweeps if len(doc["grid"]) == 1]
-    if cells:
-        parts.append(_learning_rate_section(workspace, cells))
-    parts.append(vector_section)
-    if "curves" in figures:
-        parts.append(f"\n## Training curves\n\n![curves]({figures['curves'].name})\n")
-    parts.append("\n## Runs\n\n" + "\n".join(runs) + "\n")
     out.write_text("".join(parts))
     return out

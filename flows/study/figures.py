@@ -186,6 +186,91 @@ def _label_bar(ax: Any, x: float, value: float, top: float, text: str) -> None:
     )
 
 
+def _finite(v: dict[str, float], key: str) -> bool:
+    return key in v and not math.isnan(v[key])
+
+
+def _interval(ax: Any, x: int, v: dict[str, float], key: str) -> float:
+    """Draw `key`'s interval when measured; the top of what is drawn at x."""
+    if not _finite(v, f"{key}_low"):
+        return v[key]
+    low, high = v[f"{key}_low"], v[f"{key}_high"]
+    ax.errorbar(x, v[key], yerr=[[v[key] - low], [high - v[key]]], fmt="none", ecolor="#333333", capsize=3)
+    return max(v[key], high)
+
+
+def _norm_bars(v: dict[str, float], n_draws: int) -> list[tuple[str, str]]:
+    """(key, tick label) of the measured norms, γ's first."""
+    return [
+        (k, label)
+        for k, label in (
+            ("gamma_norm", f"‖γ^d‖ (mean of {n_draws or 'the'} draws;\npoints: each draw)"),
+            ("signal_norm", "‖ŝ‖: the signal\nshared by draws"),
+            ("seed_noise_norm", "‖θ_ft^d − θ_ft^d′‖\n(seed noise)"),
+        )
+        if _finite(v, k)
+    ]
+
+
+def _plot_norms(ax: Any, v: dict[str, float]) -> None:
+    """γ's size against the seed-noise reference: is it more than what another seed would give?"""
+    per_draw = _per(v, "gamma_norm_draw_")
+    norms = _norm_bars(v, len(per_draw))
+    colours = {"gamma_norm": "#c44e52", "signal_norm": "#dd8452", "seed_noise_norm": "#8c8c8c"}
+    tops = []
+    for x, (key, _) in enumerate(norms):
+        ax.bar(x, v[key], 0.6, color=colours[key])
+        top = _interval(ax, x, v, key)
+        if key == "gamma_norm" and per_draw:
+            ax.scatter([x] * len(per_draw), [n for _, n in per_draw], s=14, color="black", zorder=3)
+            top = max(top, *(n for _, n in per_draw))
+        _label_bar(ax, x, v[key], top, f"{v[key]:.3g}")
+        tops.append(top)
+    ax.set_ylim(0, 1.15 * max(tops, default=1) or 1)
+    ax.set_xticks(range(len(norms)), [label for _, label in norms], fontsize=7.5)
+    ax.set_ylabel("L2 norm over the vector's tensors")
+    ax.set_title("Size: γ against the seed-noise reference", fontsize=9)
+
+
+def _cosine_bars(v: dict[str, float], n_pairs: int) -> list[tuple[str, str]]:
+    """(key, tick label) of the measured cosines, ρ̂ first."""
+    return [
+        (k, label)
+        for k, label in (
+            ("rho", f"ρ̂: cos(γ^d, γ^d′)\n(points: {n_pairs} pair{'s' if n_pairs != 1 else ''})"),
+            ("cos_ft_reference", "cos(γ^d, θ_ft^d − θ_pt)\n(mean over draws)"),
+            ("mean_vector_cos", "the draws' mean:\ncos with the signal\n(from ρ̂)"),
+            ("replicate_cos", "cos(γ̄^r, γ̄^r′)\nbetween replicates"),
+        )
+        if _finite(v, k)
+    ]
+
+
+def _plot_cosines(ax: Any, v: dict[str, float]) -> None:
+    """γ's direction: do draws agree with each other, with θ_ft − θ_pt, and between replicates?"""
+    pairs = _per(v, "cos_draws_")
+    cosines = _cosine_bars(v, len(pairs))
+    shown = []
+    for x, (key, _) in enumerate(cosines):
+        ax.bar(x, v[key], 0.6, color="#55a868" if key == "replicate_cos" else "#4c72b0")
+        top = _interval(ax, x, v, key)
+        if key == "rho" and pairs:
+            ax.scatter([x] * len(pairs), [c for _, c in pairs], s=14, color="black", zorder=3)
+            top = max(top, *(c for _, c in pairs))
+            shown += [c for _, c in pairs]
+        if key == "replicate_cos" and _finite(v, "replicate_cos_predicted"):
+            ax.plot([x - 0.3, x + 0.3], [v["replicate_cos_predicted"]] * 2, color="black", ls="--", lw=1)
+        _label_bar(ax, x, v[key], top, f"{v[key]:+.2f}")
+        shown += [v[key], v.get(f"{key}_low", v[key])]
+    ax.axhline(0, color="black", lw=0.8)
+    ax.set_ylim(min(-0.2, *(c - 0.15 for c in shown)), 1.1)
+    ax.set_xticks(range(len(cosines)), [label for _, label in cosines], fontsize=7.5)
+    ax.set_ylabel("cosine")
+    interval_note = "95 % jackknife over draws" if _finite(v, "rho_low") else "no interval: it needs 3 draws"
+    dashed = "; dashed: ρ̂'s prediction" if _finite(v, "replicate_cos_predicted") else ""
+    ax.set_title(f"Direction ({interval_note}{dashed})", fontsize=9)
+
+
 def plot_gamma(report: StudyReport, path: Path) -> Path | None:
     """Precondition (e)'s γ as two panels. Norms: ‖γ^d‖ per draw (points) and their mean, the signal's
     norm ‖ŝ‖ (with its jackknife interval from 3 draws), the seed-noise reference ‖θ_ft^d − θ_ft^d′‖.
@@ -196,75 +281,9 @@ def plot_gamma(report: StudyReport, path: Path) -> Path | None:
     v = e.detail_values if e is not None else {}
     if "rho" not in v:
         return None
-
-    def finite(key: str) -> bool:
-        return key in v and not math.isnan(v[key])
-
-    def interval(ax: Any, x: int, key: str) -> float:
-        """Draw `key`'s interval when measured; the top of what is drawn at x."""
-        if not finite(f"{key}_low"):
-            return v[key]
-        low, high = v[f"{key}_low"], v[f"{key}_high"]
-        ax.errorbar(
-            x, v[key], yerr=[[v[key] - low], [high - v[key]]], fmt="none", ecolor="#333333", capsize=3
-        )
-        return max(v[key], high)
-
     fig, (left, right) = plt.subplots(1, 2, figsize=(9.6, 3.8), gridspec_kw={"width_ratios": [1, 1.35]})
-    per_draw = _per(v, "gamma_norm_draw_")
-    norms = [
-        (k, label)
-        for k, label in (
-            ("gamma_norm", f"‖γ^d‖ (mean of {len(per_draw) or 'the'} draws;\npoints: each draw)"),
-            ("signal_norm", "‖ŝ‖: the signal\nshared by draws"),
-            ("seed_noise_norm", "‖θ_ft^d − θ_ft^d′‖\n(seed noise)"),
-        )
-        if finite(k)
-    ]
-    colours = {"gamma_norm": "#c44e52", "signal_norm": "#dd8452", "seed_noise_norm": "#8c8c8c"}
-    tops = []
-    for x, (key, _) in enumerate(norms):
-        left.bar(x, v[key], 0.6, color=colours[key])
-        top = interval(left, x, key)
-        if key == "gamma_norm" and per_draw:
-            left.scatter([x] * len(per_draw), [n for _, n in per_draw], s=14, color="black", zorder=3)
-            top = max(top, *(n for _, n in per_draw))
-        _label_bar(left, x, v[key], top, f"{v[key]:.3g}")
-        tops.append(top)
-    left.set_ylim(0, 1.15 * max(tops, default=1) or 1)
-    left.set_xticks(range(len(norms)), [label for _, label in norms], fontsize=7.5)
-    left.set_ylabel("L2 norm over the vector's tensors")
-    left.set_title("Size: γ against the seed-noise reference", fontsize=9)
-    pairs = _per(v, "cos_draws_")
-    cosines = [
-        (k, label)
-        for k, label in (
-            ("rho", f"ρ̂: cos(γ^d, γ^d′)\n(points: {len(pairs)} pair{'s' if len(pairs) != 1 else ''})"),
-            ("cos_ft_reference", "cos(γ^d, θ_ft^d − θ_pt)\n(mean over draws)"),
-            ("mean_vector_cos", "the draws' mean:\ncos with the signal\n(from ρ̂)"),
-            ("replicate_cos", "cos(γ̄^r, γ̄^r′)\nbetween replicates"),
-        )
-        if finite(k)
-    ]
-    shown = []
-    for x, (key, _) in enumerate(cosines):
-        right.bar(x, v[key], 0.6, color="#55a868" if key == "replicate_cos" else "#4c72b0")
-        top = interval(right, x, key)
-        if key == "rho" and pairs:
-            right.scatter([x] * len(pairs), [c for _, c in pairs], s=14, color="black", zorder=3)
-            top = max(top, *(c for _, c in pairs))
-            shown += [c for _, c in pairs]
-        if key == "replicate_cos" and finite("replicate_cos_predicted"):
-            right.plot([x - 0.3, x + 0.3], [v["replicate_cos_predicted"]] * 2, color="black", ls="--", lw=1)
-        _label_bar(right, x, v[key], top, f"{v[key]:+.2f}")
-        shown += [v[key], v.get(f"{key}_low", v[key])]
-    right.axhline(0, color="black", lw=0.8)
-    right.set_ylim(min(-0.2, *(c - 0.15 for c in shown)), 1.1)
-    right.set_xticks(range(len(cosines)), [label for _, label in cosines], fontsize=7.5)
-    right.set_ylabel("cosine")
-    interval_note = "95 % jackknife over draws" if finite("rho_low") else "no interval: it needs 3 draws"
-    dashed = "; dashed: ρ̂'s prediction" if finite("replicate_cos_predicted") else ""
-    right.set_title(f"Direction ({interval_note}{dashed})", fontsize=9)
+    _plot_norms(left, v)
+    _plot_cosines(right, v)
     for ax in (left, right):
         ax.grid(axis="y", alpha=0.3)
     fig.suptitle("Precondition (e): is there a γ shared by draws, beyond seed noise?", fontsize=10)

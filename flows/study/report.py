@@ -193,13 +193,14 @@ def _grids(workspace: Workspace, report: StudyReport) -> list[str]:
     return lines
 
 
-def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str, str] | None = None) -> str:
-    """The report; `figures` maps a figure's title to its path relative to the Markdown file."""
+def _design(report: StudyReport) -> list[str]:
+    """The title and what was run, so every number below can be read against its design."""
     d = report.design
     final = d.final_budget
     budgets = ", ".join(str(b) for b in d.endpoint_budgets)
-    lines = [f"# Study `{d.name}`", ""]
-    lines += [
+    return [
+        f"# Study `{d.name}`",
+        "",
         f"Design: {len(d.draws)} γ draw(s){_replicates(d.draws, d.draws_per_replicate)} × {len(d.seeds)} "
         f"training seed(s); {report.goals_per_task} test "
         f"goals per task × {len(report.tasks)} tasks ({', '.join(report.tasks)}), the same goals for every "
@@ -208,94 +209,169 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         f"points, paired by draw, seed and goal, with 95 % t intervals (df in brackets; see the last "
         f"section for the run-level cross-check and the variance components).",
     ]
-    if report.gate is not None:
-        lines += ["", "## Gate: the question is untestable here", "", report.gate]
-        lines += ["", "CapVector's arms (θ_meta, the orthogonal loss, the null vector) were not run."]
-    lines += _positive_control(report)
-    if report.gate is None and _find(report, "capvector", "sft", ENDPOINT) is not None:
-        lines += [
-            "",
-            "## Headline",
-            "",
-            "| comparison | endpoint (primary) | @ " + f"{final} (final) | MDD |",
-        ]
-        lines.append("|---|---|---|---|")
-        for arm, baseline in HEADLINE:
-            p, f = _find(report, arm, baseline, ENDPOINT), _find(report, arm, baseline, final)
-            mdd = f"{p.mdd:.1f}" if p and p.testable else "—"
-            lines.append(f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(p)} | {_cell(f)} | {mdd} |")
-        lines += _sizing(report, "capvector-sft", _find(report, "capvector", "sft", ENDPOINT))
-    else:
-        lines += _sizing(report, "aux-sft", _find(report, "aux", "sft", ENDPOINT))
-    lines += _target(report, speed := seconds_per_step(workspace, report))
-    lines += ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
+
+
+def _gate(report: StudyReport) -> list[str]:
+    """Why CapVector's arms are missing, when the gate stopped the study before them."""
+    if report.gate is None:
+        return []
+    return [
+        "",
+        "## Gate: the question is untestable here",
+        "",
+        report.gate,
+        "",
+        "CapVector's arms (θ_meta, the orthogonal loss, the null vector) were not run.",
+    ]
+
+
+def _headline(report: StudyReport) -> list[str]:
+    """CapVector against each baseline with its MDD; without CapVector's arms, the positive control's MDD."""
+    if report.gate is not None or _find(report, "capvector", "sft", ENDPOINT) is None:
+        return _sizing(report, "aux-sft", _find(report, "aux", "sft", ENDPOINT))
+    final = report.design.final_budget
+    lines = ["", "## Headline", "", "| comparison | endpoint (primary) | @ " + f"{final} (final) | MDD |"]
+    lines.append("|---|---|---|---|")
+    for arm, baseline in HEADLINE:
+        p, f = _find(report, arm, baseline, ENDPOINT), _find(report, arm, baseline, final)
+        mdd = f"{p.mdd:.1f}" if p and p.testable else "—"
+        lines.append(f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(p)} | {_cell(f)} | {mdd} |")
+    return lines + _sizing(report, "capvector-sft", _find(report, "capvector", "sft", ENDPOINT))
+
+
+def _preconditions(report: StudyReport) -> list[str]:
+    """Each precondition's outcome, so a headline is read only where what it rests on holds."""
+    lines = ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
     for p in report.preconditions:
         outcome = VERDICT[p.holds] if p.measured else "not measured"
         lines.append(f"| ({p.key.replace('_prime', '′')}) | {p.claim} | {outcome} | {p.detail} |")
-    lines += ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
+    return lines
+
+
+def _other_comparisons(report: StudyReport) -> list[str]:
+    """The comparisons that locate the effect (where SFT starts from, the orthogonal loss)."""
+    final = report.design.final_budget
+    lines = ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
     others = (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("sft_from_ao", "sft"), ("meta_sft", "sft"))
     for arm, baseline in others:
         lines.append(
             f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, ENDPOINT))} | "
             f"{_cell(_find(report, arm, baseline, final))} |"
         )
-    if report.heldout_loss:
-        lines += [
-            "",
-            "## Held-out action loss on D_down (secondary, continuous; lower is better)",
-            "",
-            "| comparison | difference [95 % CI] | arm | baseline | pairs |",
-            "|---|---|---|---|---|",
-        ]
-        for c in report.heldout_loss:
-            lines.append(
-                f"| {NAMES.get(c.arm, c.arm)} − {NAMES.get(c.baseline, c.baseline)} | {c.difference:+.4f} "
-                f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {c.arm_mean:.4f} | {c.baseline_mean:.4f} | "
-                f"{c.n_pairs} |"
-            )
-        lines += ["", "Paired by draw and seed; a t interval over the pairs (approximate, see the analysis)."]
-    curve_budgets = sorted({p.budget for points in report.curves.values() for p in points})
-    lines += [
+    return lines
+
+
+def _heldout_loss(report: StudyReport) -> list[str]:
+    """The held-out action loss: a continuous secondary that sees differences success rates round away."""
+    if not report.heldout_loss:
+        return []
+    lines = [
+        "",
+        "## Held-out action loss on D_down (secondary, continuous; lower is better)",
+        "",
+        "| comparison | difference [95 % CI] | arm | baseline | pairs |",
+        "|---|---|---|---|---|",
+    ]
+    for c in report.heldout_loss:
+        lines.append(
+            f"| {NAMES.get(c.arm, c.arm)} − {NAMES.get(c.baseline, c.baseline)} | {c.difference:+.4f} "
+            f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {c.arm_mean:.4f} | {c.baseline_mean:.4f} | "
+            f"{c.n_pairs} |"
+        )
+    return lines + [
+        "",
+        "Paired by draw and seed; a t interval over the pairs (approximate, see the analysis).",
+    ]
+
+
+def _curve_row(arm: str, points: list[CurvePoint], budgets: list[int], speed: dict[str, float]) -> str:
+    by = {p.budget: p for p in points}
+    cells = [_mean_cell(by[b]) if b in by else "—" for b in budgets]
+    sec = speed.get(arm)
+    ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
+    timing = f" | {sec:.4f} | {ratio} |" if sec else " | — | — |"
+    return f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + timing
+
+
+def _curves(report: StudyReport, speed: dict[str, float]) -> list[str]:
+    """Success per arm at every budget beside its time per step: what an arm costs next to what it gains."""
+    budgets = sorted({p.budget for points in report.curves.values() for p in points})
+    lines = [
         "",
         "## Success vs downstream steps (mean % [95 % CI]; 0: the checkpoint a run starts from)",
         "",
     ]
-    lines.append("| arm | " + " | ".join(str(b) for b in curve_budgets) + " | s/step | × SFT |")
-    lines.append("|---|" + "---|" * (len(curve_budgets) + 2))
-    for arm, points in report.curves.items():
-        by = {p.budget: p for p in points}
-        cells = [_mean_cell(by[b]) if b in by else "—" for b in curve_budgets]
-        sec = speed.get(arm)
-        ratio = f"{sec / speed['sft']:.2f}" if sec and speed.get("sft") else "—"
-        timing = f" | {sec:.4f} | {ratio} |" if sec else " | — | — |"
-        lines.append(f"| {NAMES.get(arm, arm)} | " + " | ".join(cells) + timing)
-    lines += _all_comparisons(report)
-    for title, path in (figures or {}).items():
+    lines.append("| arm | " + " | ".join(str(b) for b in budgets) + " | s/step | × SFT |")
+    lines.append("|---|" + "---|" * (len(budgets) + 2))
+    return lines + [_curve_row(arm, points, budgets, speed) for arm, points in report.curves.items()]
+
+
+def _figures(figures: dict[str, str]) -> list[str]:
+    lines = []
+    for title, path in figures.items():
         lines += ["", f"![{title}]({path})"]
-    lines += [
+    return lines
+
+
+def _chosen(chosen: dict[str, float]) -> str:
+    """The chosen settings, saying which form λ took (scaled to the gradient, or the paper's absolute)."""
+    return "; ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in chosen.items()) + (
+        " (λ as a multiple of ‖∇ action loss‖/‖γ‖)."
+        if "lambda_scale" in chosen
+        else " (λ absolute, the paper's form)."
+        if "lambda_absolute" in chosen
+        else "."
+    )
+
+
+def _choices(report: StudyReport) -> list[str]:
+    """The settings chosen on validation goals and the `selection` artifacts that record each choice."""
+    lines = [
         "",
         "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)",
         "",
-        "; ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in d.chosen.items())
-        + (
-            " (λ as a multiple of ‖∇ action loss‖/‖γ‖)."
-            if "lambda_scale" in d.chosen
-            else " (λ absolute, the paper's form)."
-            if "lambda_absolute" in d.chosen
-            else "."
-        ),
+        _chosen(report.design.chosen),
         "",
     ]
-    for name, sel in report.selections.items():
-        lines.append(f"- {name}: `{sel[:12]}` (`capvector lineage {sel[:12]}`)")
-    lines += _grids(workspace, report)
-    edge = d.at_edge()
-    if edge:
-        lines.append(
-            f"\nChosen at the edge of its grid: {', '.join(edge)} (a wider grid might choose beyond)."
-        )
-    lines.append(
+    return lines + [
+        f"- {name}: `{sel[:12]}` (`capvector lineage {sel[:12]}`)" for name, sel in report.selections.items()
+    ]
+
+
+def _edge(report: StudyReport) -> list[str]:
+    """A choice at the end of its grid is a bound, not an optimum."""
+    edge = report.design.at_edge()
+    if not edge:
+        return []
+    return [f"\nChosen at the edge of its grid: {', '.join(edge)} (a wider grid might choose beyond)."]
+
+
+def _timing_note() -> list[str]:
+    """How the times per step were measured, so their ratios are not over-read."""
+    return [
         "\nTime per step: median over an arm's runs of training time / steps (the λ calibration before "
         "training excluded), runs sharing 2 cores with other steps, so ratios are rough."
-    )
+    ]
+
+
+def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str, str] | None = None) -> str:
+    """The report; `figures` maps a figure's title to its path relative to the Markdown file."""
+    speed = seconds_per_step(workspace, report)
+    lines = [
+        *_design(report),
+        *_gate(report),
+        *_positive_control(report),
+        *_headline(report),
+        *_target(report, speed),
+        *_preconditions(report),
+        *_other_comparisons(report),
+        *_heldout_loss(report),
+        *_curves(report, speed),
+        *_all_comparisons(report),
+        *_figures(figures or {}),
+        *_choices(report),
+        *_grids(workspace, report),
+        *_edge(report),
+        *_timing_note(),
+    ]
     return "\n".join(lines) + "\n"
