@@ -147,3 +147,38 @@ def test_absolute_lambdas_sit_beside_relative_ones_in_the_grid():
     ]
     with pytest.raises(ValueError, match="aux_weights has 2 values, the α × λ grid 3 cells"):
         load_study("study-smoke", ["study.lambdas=[1.0e-4]"])
+
+
+def test_a_dose_arm_and_a_tuning_mean_vector_change_only_what_they_name():
+    """study.dose_alpha with arm meta_sft_dose: one more merge per unit at the dose α and its runs;
+    study.tuning_vector_draws: the α × λ runs of every tuning seed share one γ̄_tune (the mean of those
+    draws, which no compared arm uses) and one merge per α."""
+    arms = "study.arms=[sft,aux,sft_from_ao,sft_from_ft,meta_sft,meta_sft_dose,capvector,null_capvector]"
+    base = ["study.tuning_seeds=[1000,1001]"]
+    plain = study_plan(load_study("study-smoke", base))
+    cfg = load_study(
+        "study-smoke", [*base, arms, "study.dose_alpha=2.0", "study.tuning_vector_draws=[100,101,102]"]
+    )
+    plan = study_plan(cfg)
+    by_label = {p.step: p for p in plan}
+    (mean,) = [p for p in plan if p.step == "tuning mean capability vector γ̄_tune"]
+    assert sorted(mean.inputs) == ["vector 0", "vector 1", "vector 2"]
+    assert [s for s in by_label if s.startswith("draw 10") and s.endswith("capability vector γ")] == [
+        f"draw {d} capability vector γ" for d in (100, 101, 102)
+    ]
+    assert not any(s.startswith("validate draw 10") for s in by_label)  # tuning draws are not compared
+    tune_merges = [s for s in by_label if s.startswith("tune merge")]
+    assert tune_merges == ["tune merge θ_meta α=1.0"]  # one per α, shared by both tuning seeds
+    assert "tuning capability vector γ seed 1000" in labels(plain) and not any(
+        s.startswith("tuning capability vector") for s in by_label
+    )
+    dose = [p for p in plan if p.step.endswith("merge θ_meta α=2.0")]
+    assert [p.step for p in dose] == [f"draw {d} merge θ_meta α=2.0" for d in cfg.study.draws]
+    assert all(p.config["alpha"] == 2.0 for p in dose)
+    runs = [s for s in by_label if s.startswith("downstream meta_sft_dose ")]
+    want = [f"downstream meta_sft_dose draw {d} seed {s}" for d in cfg.study.draws for s in cfg.seeds]
+    assert sorted(runs) == sorted(want)
+    with pytest.raises(ValueError, match="dose_alpha and the arm meta_sft_dose"):
+        load_study("study-smoke", ["study.dose_alpha=2.0"])
+    with pytest.raises(ValueError, match="tuning_vector_draws"):
+        load_study("study-smoke", ["study.tuning_vector_draws=[0, 100]"])

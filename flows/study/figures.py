@@ -31,6 +31,7 @@ COLOURS = {
     "aux": "#dd8452",
     "capvector": "#c44e52",
     "meta_sft": "#8172b3",
+    "meta_sft_dose": "#da8bc3",
     "null_capvector": "#937860",
     "sft_from_ao": "#55a868",
     "sft_from_ft": "#8c8c8c",

@@ -25,6 +25,7 @@ NAMES = {
     "sft": "SFT",
     "aux": "auxiliary SFT",
     "meta_sft": "θ_meta without the orthogonal loss",
+    "meta_sft_dose": "θ_meta at the dose α (no orthogonal loss)",
     "capvector": "CapVector",
     "null_capvector": "null vector",
     "sft_from_ao": "SFT from θ_ao",
@@ -253,6 +254,8 @@ def _other_comparisons(report: StudyReport) -> list[str]:
     final = report.design.final_budget
     lines = ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
     others = (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("sft_from_ao", "sft"), ("meta_sft", "sft"))
+    if "meta_sft_dose" in report.design.arms:
+        others += (("meta_sft_dose", "sft"), ("meta_sft_dose", "meta_sft"))
     for arm, baseline in others:
         lines.append(
             f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, ENDPOINT))} | "
