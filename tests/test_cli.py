@@ -235,6 +235,15 @@ def test_import_list_show_and_sql(ckpts, tmp_path):
     stored = ArtifactsAPI(str(home)).path(artifact_id)
     assert load_file(str(stored)).keys() == ckpts["pt"].keys()
 
+    got = invoke(home, "artifacts", "get", artifact_id[:10], "-o", str(tmp_path / "out")).stdout.strip()
+    assert Path(got) == tmp_path / "out" and Path(got).read_bytes() == ckpts["paths"]["pt"].read_bytes()
+    into = tmp_path / "folder"
+    into.mkdir()
+    got = invoke(home, "artifacts", "get", artifact_id, "-o", str(into)).stdout.strip()
+    assert Path(got) == into / stored.name and Path(got).read_bytes() == stored.read_bytes()
+    again = run_cli("artifacts", "get", artifact_id, "-o", str(tmp_path / "out"), home=home, check=False)
+    assert again.returncode == 2 and "exists" in again.stderr, again.stderr
+
     rows = json.loads(
         invoke(home, "sql", "SELECT kind, count(*) AS n FROM artifacts GROUP BY kind", "--json").stdout
     )

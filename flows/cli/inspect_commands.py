@@ -20,7 +20,7 @@ from capvector.flows.cli.common import (
 )
 from capvector.flows.views.lineage import as_mermaid, as_tree, edge_notes, keep_kinds
 
-artifacts_app = typer.Typer(no_args_is_help=True, help="List and show artifacts.")
+artifacts_app = typer.Typer(no_args_is_help=True, help="List, show and get artifacts.")
 
 
 @artifacts_app.command("list")
@@ -51,6 +51,40 @@ def artifacts_list(
 def artifacts_show(artifact_id: str, home: HomeOption = None) -> None:
     """The full record of one artifact (its sidecar: config, parents, versions, runs)."""
     print_json(workspace(home).api.get(artifact_id).model_dump(mode="json"))
+
+
+@artifacts_app.command("get")
+def artifacts_get(
+    artifact_id: str,
+    out: Annotated[Path, typer.Option("-o", "--out", help="a new path, or a folder for a file")],
+    home: HomeOption = None,
+) -> None:
+    """Copy an artifact out of the store (verified against its id first): a file artifact to OUT, or into
+    OUT/<its file name> when OUT is an existing folder; a folder artifact to the new folder OUT. Prints
+    the path written."""
+    import shutil
+
+    ws = workspace(home)
+    record = ws.api.get(artifact_id)
+    source = ws.api.path(record.id)  # re-hashed: changed bytes are an error naming the id
+    target = out / source.name if record.layout == "file" and out.is_dir() else out
+    if target.exists():
+        raise FileExistsError(f"{target} exists: artifacts get writes only to a new path")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staged = target.with_name(f".{target.name}.partial")
+    shutil.rmtree(staged, ignore_errors=True)
+    try:
+        if record.layout == "file":
+            shutil.copyfile(source, staged)
+        else:
+            shutil.copytree(source, staged)
+        staged.rename(target)
+    finally:
+        if staged.is_dir():
+            shutil.rmtree(staged, ignore_errors=True)
+        elif staged.exists():
+            staged.unlink()
+    print(target)
 
 
 def lineage(
