@@ -118,7 +118,7 @@ def test_the_output_names_every_input_by_digest(tmp_path):
     assert meta["capvector.base_sha256"] == Checkpoint(base).sha256()  # the base they share
     shared = Checkpoint(vecs[0]).metadata["capvector.base_content_sha256"]
     assert meta["capvector.base_content_sha256"] == shared  # so `merge` accepts it on the same weights
-    assert "capvector.exclude" not in meta  # the inputs had no exclude filter
+    assert json.loads(meta["capvector.exclude"]) == []  # the filter they share, not a base hash
     assert json.loads(meta["capvector.partial"]) is True and json.loads(meta["capvector.include"]) == ["w"]
     assert str(tmp_path) not in json.dumps(meta)  # digests only: the same bytes from any folder
     other = _write(tmp_path, "other_pt", {"w": torch.ones(4), "b": torch.ones(2)})
