@@ -6,7 +6,6 @@ catalogue) load neither torch, pandas, prefect nor metaworld; every command impo
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import sys
@@ -23,26 +22,18 @@ from capvector.flows.cli.config_commands import config_app
 from capvector.flows.cli.errors import fail, failed_step, is_user_error
 from capvector.flows.cli.experiment_commands import FLOW_COMMANDS
 from capvector.flows.cli.inspect_commands import artifacts_app
-from capvector.flows.cli.process_tree import QUIET_RESOURCE_TRACKER, end, stop_on_signals
+from capvector.flows.cli.process_tree import (
+    QUIET_RESOURCE_TRACKER,
+    end,
+    leave_ctrl_c_to_the_cli,
+    stop_on_signals,
+)
 from capvector.flows.cli.table_commands import export, runs
 from capvector.flows.cli.vector_commands import vector_app
 from capvector.flows.cli.verify_commands import verify
 from capvector.flows.runtime.home import set_root_home
 
-
-def _leave_ctrl_c_to_the_cli() -> None:
-    """In a step worker, ignore SIGINT: the CLI stops its workers on Ctrl-C (main()), and a worker
-    taking the terminal's SIGINT itself would print a KeyboardInterrupt traceback. A spawned worker
-    runs this module (as its `__mp_main__`, or through the console script) first thing, before it
-    imports Prefect or torch, so it ignores Ctrl-C from its first moments (~0.1 s in). Costs the CLI
-    nothing: it only looks at modules already loaded."""
-    mp = sys.modules.get("multiprocessing")
-    if mp is not None and mp.current_process().name != "MainProcess":
-        with contextlib.suppress(ValueError):  # not imported from a main thread: leave it
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-_leave_ctrl_c_to_the_cli()
+leave_ctrl_c_to_the_cli()
 
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help=__doc__)
@@ -102,7 +93,7 @@ def main() -> None:
         sys.warnoptions.append(QUIET_RESOURCE_TRACKER)
     try:
         try:
-            code = app(standalone_mode=False)  # click returns a typer.Exit's code here
+            code = app(prog_name="capvector", standalone_mode=False)  # click returns a typer.Exit's code here
         except BaseException as exc:
             if terminated():
                 end(signal.SIGTERM)

@@ -35,6 +35,19 @@ def stop_descendants() -> None:
             os.kill(pid, signal.SIGTERM)
 
 
+def leave_ctrl_c_to_the_cli() -> None:
+    """In a step worker, ignore SIGINT: the CLI stops its workers on Ctrl-C (`stop_on_signals`), and a
+    worker taking the terminal's SIGINT itself would print a KeyboardInterrupt traceback. A spawned
+    worker runs the CLI's main module first thing (`capvector/__main__.py` as its `__mp_main__`, or the
+    console script through `capvector.flows.cli.main`), which calls this before importing anything
+    heavy, so the worker ignores Ctrl-C from its first moments. Costs the CLI nothing: it only looks at
+    modules already loaded."""
+    mp = sys.modules.get("multiprocessing")
+    if mp is not None and mp.current_process().name != "MainProcess":
+        with contextlib.suppress(ValueError):  # not imported from a main thread: leave it
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def stop_on_signals() -> Callable[[], bool]:
     """Ctrl-C (SIGINT) and SIGTERM end the CLI at once and take its helpers along: the step workers
     and Prefect's API server would otherwise outlive it. The workers are stopped first (SIGTERM, then

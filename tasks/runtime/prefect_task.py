@@ -19,6 +19,7 @@ even after `kill -9`, and nothing of a dead run may commit:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -157,6 +158,8 @@ def bind_worker_to_parent() -> None:
     import multiprocessing
 
     global _bound_parent
+    with contextlib.suppress(ValueError):  # Ctrl-C is the CLI's: it stops its workers (process_tree)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     parent = multiprocessing.parent_process()
     if parent is None or parent.pid is None:
         return
