@@ -286,14 +286,16 @@ def cached_step(
     config: dict[str, Any] | BaseModel,
     produce: Callable[[str], str],
     step: str | None = None,
+    module: str | None = None,
 ) -> str:
     """Return the artifact for this step's content key, calling `produce(key)` only when needed.
 
-    `step`: the step's label for warnings (default: the pipeline step being run, else `kind`). A
-    refused index answer is warned about once, and recomputed. Compute-and-register runs under the
-    key's lock; the cache is asked again once it is held (another run may just have finished it).
+    `step`: the step's label for warnings (default: the pipeline step being run, else `kind`).
+    `module`: the step's module, whose code the key hashes (default: `produce`'s). A refused index
+    answer is warned about once, and recomputed. Compute-and-register runs under the key's lock; the
+    cache is asked again once it is held (another run may just have finished it).
     """
-    key = content_key(kind, inputs, config, produce.__module__)
+    key = content_key(kind, inputs, config, module or produce.__module__)
     existing, problem = _find(workspace, key)
     if existing is not None:
         _record("cached")

@@ -21,9 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from capvector.artifacts.scores import read_scores
 from capvector.core.simulation.demos import VALIDATION_SEED_BASE
-from capvector.tasks.runtime.caching import cached_step
-from capvector.tasks.runtime.prefect_task import pipeline_task
-from capvector.tasks.runtime.workspace import Workspace, provenance, workspace_for
+from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
+from capvector.tasks.runtime.workspace import Workspace, provenance
 from capvector.tasks.steps.held_out_loss import measured_loss
 
 CALIBRATION_KIND = "calibration"
@@ -302,48 +301,41 @@ def extraction_losses(workspace: Workspace, inputs: dict[str, str]) -> dict[int,
     return {steps: (v["half"], v["end"]) for steps, v in sorted(found.items())}
 
 
-def run_calibration(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    cfg = CalibrationStepConfig.model_validate(config)
-
-    def produce(key: str) -> str:
-        curves, verdicts, split = choose_tasks(workspace, inputs, cfg)
-        convergence = extraction_convergence(
-            extraction_losses(workspace, inputs), cfg.extraction.budgets, cfg.extraction.tolerance
-        )
-        doc = {
-            "name": cfg.name,
-            "config": cfg.config,
-            "candidates": cfg.candidates,
-            "seeds": cfg.seeds,
-            "rule": {**cfg.rule.model_dump(mode="json"), "text": cfg.rule.text()},
-            "curves": curves,
-            "verdicts": {t: v.model_dump(mode="json") for t, v in verdicts.items()},
-            "split": split.model_dump(mode="json"),
-            "extraction": convergence.model_dump(mode="json"),
-            "evaluations": {k: v for k, v in sorted(inputs.items()) if k.startswith("eval/")},
-            "extraction_runs": {k: v for k, v in sorted(inputs.items()) if k.startswith("run/")},
-            "selected_on": "validation goals (success) and held-out extraction demonstrations (loss)",
-        }
-        parents = [(v, _ROLES[k.split("/")[0]]) for k, v in sorted(inputs.items())]
-        record = workspace.api.register_json(
-            doc,
-            kind=CALIBRATION_KIND,
-            name=step,
-            config={"cache_key": key},
-            parents=list(dict.fromkeys(parents)),
-            **provenance(),
-        )
-        return record.id
-
-    return cached_step(workspace, "calibrate", inputs, config, produce)
+def _calibrate(call: StepCall) -> str:
+    workspace, inputs, cfg = call.workspace, call.inputs, call.config
+    curves, verdicts, split = choose_tasks(workspace, inputs, cfg)
+    convergence = extraction_convergence(
+        extraction_losses(workspace, inputs), cfg.extraction.budgets, cfg.extraction.tolerance
+    )
+    doc = {
+        "name": cfg.name,
+        "config": cfg.config,
+        "candidates": cfg.candidates,
+        "seeds": cfg.seeds,
+        "rule": {**cfg.rule.model_dump(mode="json"), "text": cfg.rule.text()},
+        "curves": curves,
+        "verdicts": {t: v.model_dump(mode="json") for t, v in verdicts.items()},
+        "split": split.model_dump(mode="json"),
+        "extraction": convergence.model_dump(mode="json"),
+        "evaluations": {k: v for k, v in sorted(inputs.items()) if k.startswith("eval/")},
+        "extraction_runs": {k: v for k, v in sorted(inputs.items()) if k.startswith("run/")},
+        "selected_on": "validation goals (success) and held-out extraction demonstrations (loss)",
+    }
+    parents = [(v, _ROLES[k.split("/")[0]]) for k, v in sorted(inputs.items())]
+    record = workspace.api.register_json(
+        doc,
+        kind=CALIBRATION_KIND,
+        name=call.step,
+        config={"cache_key": call.key},
+        parents=list(dict.fromkeys(parents)),
+        **provenance(),
+    )
+    return record.id
 
 
 _ROLES = {"eval": "validation", "run": "extraction_run", "loss": "held_out_loss"}
-
-
-@pipeline_task("calibrate")
-def calibrate_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_calibration(workspace_for(home), step, inputs, config)
+CALIBRATE = StepKind("calibrate", CalibrationStepConfig, (), _calibrate)
+calibrate_task = step_task(CALIBRATE)
 
 
 # ---------------------------------------------------------------------------- the report

@@ -6,9 +6,9 @@ from typing import Any
 
 from capvector.artifacts.scores import read_scores
 from capvector.core.evaluation.rollouts import EvalConfig, EvalResult, evaluate
-from capvector.tasks.runtime.caching import cached_step
-from capvector.tasks.runtime.prefect_task import artifact_key, pipeline_task
+from capvector.tasks.runtime.prefect_task import artifact_key
 from capvector.tasks.runtime.progress import progress_printer
+from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
 from capvector.tasks.runtime.workspace import Workspace, provenance
 from capvector.tasks.trained_policy import load_trained_policy
 
@@ -42,7 +42,11 @@ def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, A
 
 
 def evaluate_checkpoint(
-    workspace: Workspace, step: str, checkpoint_id: str, config: dict[str, Any], cache_key: str | None = None
+    workspace: Workspace,
+    step: str,
+    checkpoint_id: str,
+    config: dict[str, Any] | EvalConfig,
+    cache_key: str | None = None,
 ) -> str:
     """Run the rollouts now (no cache) and register the evaluation; returns its artifact id."""
     eval_config = EvalConfig.model_validate(config)
@@ -119,25 +123,12 @@ def _register(
     return record
 
 
-def run_evaluate(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    if "checkpoint" not in inputs:
-        raise ValueError(f"step {step!r}: evaluate needs a 'checkpoint' input")
-    eval_config = EvalConfig.model_validate(config)  # fail before any cache lookup on a bad protocol
-    return cached_step(
-        workspace,
-        "evaluate",
-        inputs,
-        eval_config,
-        lambda key: evaluate_checkpoint(workspace, step, inputs["checkpoint"], config, cache_key=key),
-    )
+def _evaluate(call: StepCall) -> str:
+    return evaluate_checkpoint(call.workspace, call.step, call.inputs["checkpoint"], call.config, call.key)
 
 
-@pipeline_task("evaluate")
-def evaluate_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_evaluate(Workspace(home), step, inputs, config)
-
-
-@pipeline_task("reevaluate", content_cached=False)
-def reevaluate_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    """Always re-runs: the cache key has a fresh nonce unless this exact run already landed."""
-    return evaluate_checkpoint(Workspace(home), step, inputs["checkpoint"], config)
+EVALUATE = StepKind("evaluate", EvalConfig, ("checkpoint",), _evaluate, key_on_model=True)
+REEVALUATE = StepKind("reevaluate", EvalConfig, ("checkpoint",), _evaluate, content_cached=False)
+"""Always re-runs: the cache key has a fresh nonce unless this exact run already landed."""
+evaluate_task = step_task(EVALUATE)
+reevaluate_task = step_task(REEVALUATE)

@@ -8,8 +8,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from capvector.artifacts.scores import read_scores
-from capvector.tasks.runtime.caching import cached_step
-from capvector.tasks.runtime.prefect_task import pipeline_task
+from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
 from capvector.tasks.runtime.workspace import Workspace, provenance
 
 
@@ -154,23 +153,20 @@ def markdown_table(report: Report, timings: dict[str, dict[str, float | None]] |
     return "\n".join(lines) + f"\n\nProtocol fingerprint: `{report.fingerprint}`\n"
 
 
-def run_report(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    def produce(key: str) -> str:
-        report = comparison(workspace, inputs)
-        report.markdown = markdown_table(report)
-        record = workspace.api.register_json(
-            report,
-            kind="report",
-            name=step,
-            config={**config, "cache_key": key},
-            parents=[(eval_id, "evaluation") for eval_id in dict.fromkeys(inputs.values())],
-            **provenance(),
-        )
-        return record.id
-
-    return cached_step(workspace, "report", inputs, config, produce)
+def _report(call: StepCall) -> str:
+    report = comparison(call.workspace, call.inputs)
+    report.markdown = markdown_table(report)
+    record = call.workspace.api.register_json(
+        report,
+        kind="report",
+        name=call.step,
+        config={**call.config, "cache_key": call.key},
+        parents=[(eval_id, "evaluation") for eval_id in dict.fromkeys(call.inputs.values())],
+        **provenance(),
+    )
+    return record.id
 
 
-@pipeline_task("report")
-def report_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_report(Workspace(home), step, inputs, config)
+REPORT = StepKind("report", None, (), _report)
+run_report = REPORT.run
+report_task = step_task(REPORT)

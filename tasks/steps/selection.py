@@ -13,9 +13,8 @@ from typing import Any
 from pydantic import BaseModel, Field, model_validator
 
 from capvector.artifacts.scores import read_scores
-from capvector.tasks.runtime.caching import cached_step
-from capvector.tasks.runtime.prefect_task import pipeline_task
-from capvector.tasks.runtime.workspace import Workspace, provenance, workspace_for
+from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
+from capvector.tasks.runtime.workspace import Workspace, provenance
 from capvector.tasks.steps.held_out_loss import measured_loss
 
 SELECTION_KIND = "selection"
@@ -54,53 +53,52 @@ class SelectionConfig(BaseModel):
         return self
 
 
-def run_select(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    cfg = SelectionConfig.model_validate(config)
+def _candidates_given(step: str, inputs: dict[str, str], cfg: SelectionConfig) -> None:
     missing = [x for c in cfg.candidates for x in (*c.evaluations, c.tiebreak) if x and x not in inputs]
     if missing:
         raise ValueError(f"step {step!r}: no input for candidate evaluation(s) {missing}")
 
-    def produce(key: str) -> str:
-        per_candidate = [[inputs[e] for e in c.evaluations] for c in cfg.candidates]
-        eval_ids = [e for ids in per_candidate for e in ids]
-        scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=eval_ids)}
-        protocols = {scores[e].fingerprint for e in eval_ids}
-        if len(protocols) != 1:
-            raise ValueError(f"step {step!r}: candidates were evaluated under {len(protocols)} protocols")
-        rows = [
-            {
-                **c.values,
-                "evaluation_ids": ids,
-                "checkpoint_ids": [scores[e].checkpoint_id for e in ids],
-                "validation_success": sum(scores[e].mean_success for e in ids) / len(ids),
-                **({"held_out_loss": measured_loss(workspace, inputs[c.tiebreak])} if c.tiebreak else {}),
-            }
-            for c, ids in zip(cfg.candidates, per_candidate, strict=True)
-        ]
-        # max keeps the first of equals
-        best = max(rows, key=lambda r: (r["validation_success"], -r.get("held_out_loss", 0.0)))
-        doc = {
-            "name": cfg.name,
-            **cfg.context,
-            "parameters": sorted({k for c in cfg.candidates for k in c.values}),
-            "grid": rows,
-            "best": best,
-            "rule": RULE,
-            "selected_on": "validation goals",
-            "protocol": protocols.pop(),
-        }
-        record = workspace.api.register_json(
-            doc,
-            kind=SELECTION_KIND,
-            name=step,
-            config={"cache_key": key},
-            parents=[(e, "validation") for e in dict.fromkeys(eval_ids)]
-            + [(inputs[c.tiebreak], "tiebreak") for c in cfg.candidates if c.tiebreak],
-            **provenance(),
-        )
-        return record.id
 
-    return cached_step(workspace, "select", inputs, config, produce)
+def _select(call: StepCall) -> str:
+    workspace, step, inputs, cfg = call.workspace, call.step, call.inputs, call.config
+    per_candidate = [[inputs[e] for e in c.evaluations] for c in cfg.candidates]
+    eval_ids = [e for ids in per_candidate for e in ids]
+    scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=eval_ids)}
+    protocols = {scores[e].fingerprint for e in eval_ids}
+    if len(protocols) != 1:
+        raise ValueError(f"step {step!r}: candidates were evaluated under {len(protocols)} protocols")
+    rows = [
+        {
+            **c.values,
+            "evaluation_ids": ids,
+            "checkpoint_ids": [scores[e].checkpoint_id for e in ids],
+            "validation_success": sum(scores[e].mean_success for e in ids) / len(ids),
+            **({"held_out_loss": measured_loss(workspace, inputs[c.tiebreak])} if c.tiebreak else {}),
+        }
+        for c, ids in zip(cfg.candidates, per_candidate, strict=True)
+    ]
+    # max keeps the first of equals
+    best = max(rows, key=lambda r: (r["validation_success"], -r.get("held_out_loss", 0.0)))
+    doc = {
+        "name": cfg.name,
+        **cfg.context,
+        "parameters": sorted({k for c in cfg.candidates for k in c.values}),
+        "grid": rows,
+        "best": best,
+        "rule": RULE,
+        "selected_on": "validation goals",
+        "protocol": protocols.pop(),
+    }
+    record = workspace.api.register_json(
+        doc,
+        kind=SELECTION_KIND,
+        name=step,
+        config={"cache_key": call.key},
+        parents=[(e, "validation") for e in dict.fromkeys(eval_ids)]
+        + [(inputs[c.tiebreak], "tiebreak") for c in cfg.candidates if c.tiebreak],
+        **provenance(),
+    )
+    return record.id
 
 
 def chosen(workspace: Workspace, selection_id: str) -> dict[str, Any]:
@@ -110,6 +108,6 @@ def chosen(workspace: Workspace, selection_id: str) -> dict[str, Any]:
     return {k: doc["best"][k] for k in doc["parameters"] if k in doc["best"]}
 
 
-@pipeline_task("select")
-def select_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_select(workspace_for(home), step, inputs, config)
+SELECT = StepKind("select", SelectionConfig, (), _select, check=_candidates_given)
+run_select = SELECT.run
+select_task = step_task(SELECT)

@@ -37,9 +37,8 @@ from capvector.stats.paired_differences import (
     success_curve,
     t_quantile,
 )
-from capvector.tasks.runtime.caching import cached_step
-from capvector.tasks.runtime.prefect_task import pipeline_task
-from capvector.tasks.runtime.workspace import Workspace, provenance, workspace_for
+from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
+from capvector.tasks.runtime.workspace import Workspace, provenance
 from capvector.tasks.steps.held_out_loss import measured_loss
 from capvector.tasks.study_inputs import (
     CapabilityVector,
@@ -612,24 +611,19 @@ def _separable(components: VarianceComponents) -> VarianceComponents:
     return components.model_copy(update={k: 0.0 for k, v in values.items() if math.isnan(v)})
 
 
-def run_analyse_study(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    design = StudyDesign.model_validate(config)
-
-    def produce(key: str) -> str:
-        report = analyse(workspace, inputs, design)
-        record = workspace.api.register_json(
-            report.model_dump(mode="json"),
-            kind=STUDY_KIND,
-            name=step,
-            config={"design": design.model_dump(mode="json"), "cache_key": key},
-            parents=list({a: (a, name.split("/")[0]) for name, a in sorted(inputs.items())}.values()),
-            **provenance(),
-        )
-        return record.id
-
-    return cached_step(workspace, "analyse_study", inputs, config, produce)
+def _analyse_study(call: StepCall) -> str:
+    report = analyse(call.workspace, call.inputs, call.config)
+    record = call.workspace.api.register_json(
+        report.model_dump(mode="json"),
+        kind=STUDY_KIND,
+        name=call.step,
+        config={"design": call.config.model_dump(mode="json"), "cache_key": call.key},
+        parents=list({a: (a, name.split("/")[0]) for name, a in sorted(call.inputs.items())}.values()),
+        **provenance(),
+    )
+    return record.id
 
 
-@pipeline_task("analyse_study")
-def analyse_study_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_analyse_study(workspace_for(home), step, inputs, config)
+ANALYSE_STUDY = StepKind("analyse_study", StudyDesign, (), _analyse_study)
+run_analyse_study = ANALYSE_STUDY.run
+analyse_study_task = step_task(ANALYSE_STUDY)

@@ -35,10 +35,10 @@ from capvector.core.simulation.demos import DemoDataset
 from capvector.core.training.orthogonal import OrthogonalRegularizer
 from capvector.core.training.trainer import TrainConfig, TrainResult, train
 from capvector.tasks.adapters import ADAPTERS
-from capvector.tasks.runtime.caching import cached_step, selected_by
-from capvector.tasks.runtime.prefect_task import pipeline_task
+from capvector.tasks.runtime.caching import selected_by
 from capvector.tasks.runtime.progress import progress_printer
-from capvector.tasks.runtime.workspace import Workspace, provenance, workspace_for
+from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
+from capvector.tasks.runtime.workspace import Workspace, provenance
 
 CALIBRATION_BATCHES = 8
 
@@ -158,23 +158,14 @@ def _calibration_batches(
     ]
 
 
-def run_train(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    cfg = TrainStepConfig.model_validate(config)
+def _adapter_keeps_snapshots(step: str, inputs: dict[str, str], cfg: TrainStepConfig) -> None:
     if cfg.train.snapshot_steps and not ADAPTERS[cfg.adapter].snapshots:
         raise ValueError(f"step {step!r}: train.snapshot_steps needs full fine-tuning (adapter 'full')")
-    if "data" not in inputs:
-        raise ValueError(f"step {step!r}: training needs a `data` input (a dataset artifact id)")
-
-    def produce(key: str) -> str:
-        return _train_checkpoint(workspace, step, inputs, cfg, key)
-
-    return cached_step(workspace, "train", inputs, cfg, produce, step=step)
 
 
-def _train_checkpoint(
-    workspace: Workspace, step: str, inputs: dict[str, str], cfg: TrainStepConfig, key: str
-) -> str:
+def _train_checkpoint(call: StepCall) -> str:
     """Train, then register the checkpoint; the run folder is kept until the checkpoint is committed."""
+    workspace, step, inputs, cfg, key = call.workspace, call.step, call.inputs, call.config, call.key
     form = ADAPTERS[cfg.adapter]
     dataset = DemoDataset.load(workspace.path(inputs["data"]))
     model = _initial_policy(workspace, cfg, inputs.get("init"))
@@ -341,6 +332,8 @@ def _curve_rows(path: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-@pipeline_task("train")
-def train_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_train(workspace_for(home), step, inputs, config)
+TRAIN = StepKind(
+    "train", TrainStepConfig, ("data",), _train_checkpoint, check=_adapter_keeps_snapshots, key_on_model=True
+)
+run_train = TRAIN.run
+train_task = step_task(TRAIN)

@@ -9,9 +9,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from capvector.core.vectors import vector_ops
 from capvector.core.vectors.vector_ops import VectorStat, group_of
-from capvector.tasks.runtime.caching import cached_step, selected_by
-from capvector.tasks.runtime.prefect_task import pipeline_task
-from capvector.tasks.runtime.workspace import Workspace, provenance, workspace_for
+from capvector.tasks.runtime.caching import selected_by
+from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
+from capvector.tasks.runtime.workspace import provenance
 
 
 class VectorFilter(BaseModel):
@@ -53,100 +53,92 @@ def stat_rows(stats: list[VectorStat], group_depth: int = 2) -> list[dict[str, A
     return rows
 
 
-def run_extract(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+def _extract(call: StepCall) -> str:
     """γ = minuend − subtrahend; with a `base` input, statistics against θ_pt and θ_ft − θ_pt."""
-    flt = VectorFilter.model_validate(config)
-    for role in ("minuend", "subtrahend"):
-        if role not in inputs:
-            raise ValueError(f"step {step!r}: extract needs a {role!r} input")
-
-    def produce(key: str) -> str:
-        minuend, subtrahend = workspace.path(inputs["minuend"]), workspace.path(inputs["subtrahend"])
-        base = workspace.path(inputs["base"]) if "base" in inputs else None
-        meta = provenance()
-        with workspace.scratch() as tmp:
-            out = vector_ops.extract(
-                minuend, subtrahend, tmp / "vector.safetensors", flt.include, flt.exclude, base=base
-            )
-            parents = [(inputs["minuend"], "minuend"), (inputs["subtrahend"], "subtrahend")]
-            if "base" in inputs:
-                parents.append((inputs["base"], "base"))
-            record = workspace.api.register_file(
-                out,
-                kind="vector",
-                name=step,
-                config={"formula": "minuend - subtrahend", **flt.model_dump(), "cache_key": key},
-                parents=parents,
-                **meta,
-            )
-            reference = None
-            if base is not None:
-                reference = vector_ops.extract(subtrahend, base, tmp / "task_vector.safetensors", base=base)
-            stats = vector_ops.stats(out, base=base, reference_vector=reference)
-        workspace.api.register_vector_stats(record.id, stat_rows(stats), **meta)
-        return record.id
-
-    return cached_step(workspace, "extract_vector", inputs, config, produce)
+    workspace, inputs, flt = call.workspace, call.inputs, call.config
+    minuend, subtrahend = workspace.path(inputs["minuend"]), workspace.path(inputs["subtrahend"])
+    base = workspace.path(inputs["base"]) if "base" in inputs else None
+    meta = provenance()
+    with workspace.scratch() as tmp:
+        out = vector_ops.extract(
+            minuend, subtrahend, tmp / "vector.safetensors", flt.include, flt.exclude, base=base
+        )
+        parents = [(inputs["minuend"], "minuend"), (inputs["subtrahend"], "subtrahend")]
+        if "base" in inputs:
+            parents.append((inputs["base"], "base"))
+        record = workspace.api.register_file(
+            out,
+            kind="vector",
+            name=call.step,
+            config={"formula": "minuend - subtrahend", **flt.model_dump(), "cache_key": call.key},
+            parents=parents,
+            **meta,
+        )
+        reference = None
+        if base is not None:
+            reference = vector_ops.extract(subtrahend, base, tmp / "task_vector.safetensors", base=base)
+        stats = vector_ops.stats(out, base=base, reference_vector=reference)
+    workspace.api.register_vector_stats(record.id, stat_rows(stats), **meta)
+    return record.id
 
 
-def run_merge(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+def _merge(call: StepCall) -> str:
     """θ = base + α·vector; the merged file keeps base's metadata, so it loads as the same policy type."""
-    cfg = MergeConfig.model_validate(config)
-    for role in ("base", "vector"):
-        if role not in inputs:
-            raise ValueError(f"step {step!r}: merge needs a {role!r} input")
-
-    def produce(key: str) -> str:
-        base = workspace.path(inputs["base"])
-        with workspace.scratch() as tmp:
-            merged = vector_ops.merge(
-                base,
-                [(workspace.path(inputs["vector"]), cfg.alpha)],
-                tmp / "model.safetensors",
-                cfg.include,
-                cfg.exclude,
-            )
-            formula = {"formula": "base + alpha * vector", "alpha": cfg.alpha}
-            record = workspace.api.register_file(
-                merged,
-                kind="checkpoint",
-                name=step,
-                config={**formula, **cfg.model_dump(), "cache_key": key},
-                parents=[
-                    (inputs["base"], "base"),
-                    (inputs["vector"], "vector", {"alpha": cfg.alpha}),
-                    *selected_by(inputs),
-                ],
-                **provenance(),
-            )
-        return record.id
-
-    return cached_step(workspace, "merge", inputs, config, produce)
+    workspace, inputs, cfg = call.workspace, call.inputs, call.config
+    base = workspace.path(inputs["base"])
+    with workspace.scratch() as tmp:
+        merged = vector_ops.merge(
+            base,
+            [(workspace.path(inputs["vector"]), cfg.alpha)],
+            tmp / "model.safetensors",
+            cfg.include,
+            cfg.exclude,
+        )
+        formula = {"formula": "base + alpha * vector", "alpha": cfg.alpha}
+        record = workspace.api.register_file(
+            merged,
+            kind="checkpoint",
+            name=call.step,
+            config={**formula, **cfg.model_dump(), "cache_key": call.key},
+            parents=[
+                (inputs["base"], "base"),
+                (inputs["vector"], "vector", {"alpha": cfg.alpha}),
+                *selected_by(inputs),
+            ],
+            **provenance(),
+        )
+    return record.id
 
 
-def run_mean_vector(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    """γ̄ = the mean of the input vectors `vector 0`, `vector 1`, … (their seed noise averages out: with a
-    signal fraction ρ per draw, the mean of K points at the signal with cos √(Kρ / (Kρ + 1 − ρ)))."""
-    roles = sorted((r for r in inputs if r.startswith("vector ")), key=lambda r: int(r.split()[1]))
+def _vector_roles(inputs: dict[str, str]) -> list[str]:
+    """The roles `vector 0`, `vector 1`, … of a mean's inputs, in index order."""
+    return sorted((r for r in inputs if r.startswith("vector ")), key=lambda r: int(r.split()[1]))
+
+
+def _only_vectors(step: str, inputs: dict[str, str], config: dict[str, Any]) -> None:
+    roles = _vector_roles(inputs)
     if len(roles) < 2 or len(roles) != len(inputs):
         raise ValueError(
             f"step {step!r}: a mean needs inputs 'vector 0', 'vector 1', … (2 or more), not {sorted(inputs)}"
         )
 
-    def produce(key: str) -> str:
-        with workspace.scratch() as tmp:
-            out = vector_ops.mean([workspace.path(inputs[r]) for r in roles], tmp / "vector.safetensors")
-            record = workspace.api.register_file(
-                out,
-                kind="vector",
-                name=step,
-                config={"formula": "mean of vectors", "count": len(roles), "cache_key": key},
-                parents=[(inputs[r], "vector", {"index": i}) for i, r in enumerate(roles)],
-                **provenance(),
-            )
-        return record.id
 
-    return cached_step(workspace, "mean_vector", inputs, config, produce)
+def _mean_vector(call: StepCall) -> str:
+    """γ̄ = the mean of the input vectors `vector 0`, `vector 1`, … (their seed noise averages out: with a
+    signal fraction ρ per draw, the mean of K points at the signal with cos √(Kρ / (Kρ + 1 − ρ)))."""
+    workspace, inputs = call.workspace, call.inputs
+    roles = _vector_roles(inputs)
+    with workspace.scratch() as tmp:
+        out = vector_ops.mean([workspace.path(inputs[r]) for r in roles], tmp / "vector.safetensors")
+        record = workspace.api.register_file(
+            out,
+            kind="vector",
+            name=call.step,
+            config={"formula": "mean of vectors", "count": len(roles), "cache_key": call.key},
+            parents=[(inputs[r], "vector", {"index": i}) for i, r in enumerate(roles)],
+            **provenance(),
+        )
+    return record.id
 
 
 class NullVectorConfig(BaseModel):
@@ -154,49 +146,34 @@ class NullVectorConfig(BaseModel):
     seed: int = Field(0, description="seed of the random directions")
 
 
-def run_null_vector(workspace: Workspace, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
+def _null_vector(call: StepCall) -> str:
     """A random vector with the per-tensor norms of input `vector` (the null-vector control)."""
-    cfg = NullVectorConfig.model_validate(config)
-    if "vector" not in inputs:
-        raise ValueError(f"step {step!r}: a null vector needs a 'vector' input (whose norms it takes)")
-
-    def produce(key: str) -> str:
-        with workspace.scratch() as tmp:
-            out = vector_ops.null_vector(
-                workspace.path(inputs["vector"]), tmp / "vector.safetensors", cfg.seed
-            )
-            record = workspace.api.register_file(
-                out,
-                kind="vector",
-                name=step,
-                config={
-                    "formula": "random, with the per-tensor norms of vector",
-                    "seed": cfg.seed,
-                    "cache_key": key,
-                },
-                parents=[(inputs["vector"], "norms_from")],
-                **provenance(),
-            )
-        return record.id
-
-    return cached_step(workspace, "null_vector", inputs, config, produce)
+    workspace, inputs, cfg = call.workspace, call.inputs, call.config
+    with workspace.scratch() as tmp:
+        out = vector_ops.null_vector(workspace.path(inputs["vector"]), tmp / "vector.safetensors", cfg.seed)
+        record = workspace.api.register_file(
+            out,
+            kind="vector",
+            name=call.step,
+            config={
+                "formula": "random, with the per-tensor norms of vector",
+                "seed": cfg.seed,
+                "cache_key": call.key,
+            },
+            parents=[(inputs["vector"], "norms_from")],
+            **provenance(),
+        )
+    return record.id
 
 
-@pipeline_task("extract_vector")
-def extract_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_extract(workspace_for(home), step, inputs, config)
-
-
-@pipeline_task("merge")
-def merge_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_merge(workspace_for(home), step, inputs, config)
-
-
-@pipeline_task("mean_vector")
-def mean_vector_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_mean_vector(workspace_for(home), step, inputs, config)
-
-
-@pipeline_task("null_vector")
-def null_vector_task(home: str, step: str, inputs: dict[str, str], config: dict[str, Any]) -> str:
-    return run_null_vector(workspace_for(home), step, inputs, config)
+EXTRACT = StepKind("extract_vector", VectorFilter, ("minuend", "subtrahend"), _extract)
+MERGE = StepKind("merge", MergeConfig, ("base", "vector"), _merge)
+MEAN_VECTOR = StepKind("mean_vector", None, (), _mean_vector, check=_only_vectors)
+NULL_VECTOR = StepKind("null_vector", NullVectorConfig, ("vector",), _null_vector)
+run_extract = EXTRACT.run
+run_merge = MERGE.run
+run_mean_vector = MEAN_VECTOR.run
+extract_task = step_task(EXTRACT)
+merge_task = step_task(MERGE)
+mean_vector_task = step_task(MEAN_VECTOR)
+null_vector_task = step_task(NULL_VECTOR)
