@@ -40,7 +40,8 @@ run: install
 
 test: install
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	# two workers, a test file each: most tests wait on subprocesses (a Prefect server, step workers)
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 lint: install
 	$(PY) -m ruff check .

@@ -16,7 +16,8 @@ if "CAPVECTOR_TEST_KEEP_PREFECT_HOME" not in os.environ:
 
 import torch  # noqa: E402
 
-torch.set_num_threads(2)
+# two pytest-xdist workers share the 2 cores of the machine the suite is sized for
+torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 
 
 import json  # noqa: E402
