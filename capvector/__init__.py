@@ -8,7 +8,8 @@ policies, training, evaluation, vector arithmetic), `capvector.stats` (a study's
 The library API for your own training loop (docs/guide/own-loop.md) is importable from here, each name
 loaded on first use: `extract`, `merge`, `mean`, `stats` (streaming vector arithmetic on safetensors
 checkpoints), `OrthogonalRegularizer` (λ·Σ|γ ⊙ (θ − θ_meta)| as an `nn.Module`), `apply_lora` and
-`LoraConfig` (LoRA through peft), `load_policy` and `save_policy` (this project's policies).
+`LoraConfig` (LoRA through peft), `apply_lora_sp` and `LoraSPConfig` (rank-adaptive LoRA-SP),
+`load_policy` and `save_policy` (this project's policies).
 
 In a checkout the design keeps those folders at the repository's top level (`capvector_core/`, `flows/`,
 …); a wheel puts them under `capvector/` (pyproject's package-dir). The finder below maps the five names
@@ -55,6 +56,8 @@ _PUBLIC = {
     "OrthogonalRegularizer": "capvector.core.training.orthogonal",
     "apply_lora": "capvector.core.adapters.lora",
     "LoraConfig": "capvector.core.adapters.lora",
+    "apply_lora_sp": "capvector.core.adapters.lora_sp",
+    "LoraSPConfig": "capvector.core.adapters.lora_sp",
     "load_policy": "capvector.core.policies.base",
     "save_policy": "capvector.core.policies.base",
 }

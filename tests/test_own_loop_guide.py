@@ -24,6 +24,17 @@ def test_the_guide_example_runs_and_does_what_it_says(tmp_path, monkeypatch, cap
     assert re.search(r"action loss \d+\.\d+, orthogonal term \d", printed), printed
 
 
+def test_the_lerobot_style_example_sets_a_relative_lambda(tmp_path, monkeypatch, capsys) -> None:
+    first, second = re.findall(r"```python\n(.*?)```", GUIDE.read_text(), re.S)[:2]
+    monkeypatch.chdir(tmp_path)
+    for i, code in enumerate((first, second)):
+        (tmp_path / f"example{i}.py").write_text(code)
+        runpy.run_path(str(tmp_path / f"example{i}.py"), run_name="__main__")
+    printed = capsys.readouterr().out
+    weight = float(re.search(r"relative λ = 0\.1 × ‖∇ loss‖/‖γ‖ = (\S+);", printed).group(1))
+    assert 0 < weight < 1e3, printed
+
+
 def test_importing_capvector_loads_no_torch_until_a_name_is_used() -> None:
     import subprocess
     import sys

@@ -44,7 +44,7 @@ Modes:
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Literal
 
 import torch
@@ -210,6 +210,25 @@ class OrthogonalRegularizer(nn.Module):
         """‖γ‖₂ over the regularized tensors."""
         squares = [getattr(self, f"gamma_{i}").double().square().sum() for i in range(len(self.names))]
         return float(torch.stack(squares).sum().sqrt())
+
+    def gradient_ratio(self, model: nn.Module, losses: Iterable[torch.Tensor]) -> float:
+        """‖∇ loss‖ / ‖γ‖ over the regularized tensors (dense mode), the loss's gradient norm averaged over
+        `losses` (scalars computed on a few training batches at the model as training starts).
+
+        λ in relative form: `weight = lambda_scale × this ratio` makes the orthogonal loss's gradient,
+        λ·γ ⊙ sign(θ − θ_meta) of norm λ·‖γ‖, that multiple of the action loss's, whatever the model's
+        scale or γ's norm. The paper's λ (1e-4) is the absolute form: set `weight` to it directly."""
+        params = self.dense_parameters(model)
+        norms = []
+        for loss in losses:
+            grads = torch.autograd.grad(loss, params, allow_unused=True)
+            norms.append(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads if g is not None])))
+        gamma = self.gamma_norm()
+        if gamma == 0:
+            raise ValueError("γ is zero on every regularized tensor: no orthogonal loss can be scaled to it")
+        if not norms:
+            raise ValueError("gradient_ratio needs at least one loss")
+        return float(torch.stack(norms).mean()) / gamma
 
     def forward(self, model: nn.Module) -> torch.Tensor:
         targets = self._targets(model)

@@ -134,16 +134,9 @@ def action_gradient_scale(
     action loss's gradient norm is averaged over a few training batches (a fixed generator: no RNG state
     of the run is used).
     """
-    params = regularizer.dense_parameters(model)
-    norms = []
-    for batch in _calibration_batches(model, dataset, seed, batch_size):
-        loss = torch.stack(list(model.compute_loss(batch).terms.values())).sum()
-        grads = torch.autograd.grad(loss, params, allow_unused=True)
-        norms.append(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads if g is not None])))
-    gamma = regularizer.gamma_norm()
-    if gamma == 0:
-        raise ValueError("γ is zero on every regularized tensor: no orthogonal loss can be scaled to it")
-    return float(torch.stack(norms).mean()) / gamma
+    batches = _calibration_batches(model, dataset, seed, batch_size)
+    losses = (torch.stack(list(model.compute_loss(batch).terms.values())).sum() for batch in batches)
+    return regularizer.gradient_ratio(model, losses)
 
 
 def _calibration_batches(
