@@ -15,6 +15,7 @@ from typing import Annotated, Any
 
 import typer
 
+from capvector.flows.cli.common import HomeOption
 from capvector.flows.runtime.home import resolve_home
 from capvector.flows.runtime.housekeeping import (
     KEEP_LOG_BYTES,
@@ -30,7 +31,6 @@ catalogue_app = typer.Typer(
     "`housekeeping` bounds run logs and Prefect's run history.",
 )
 
-HomeOption = Annotated[str | None, typer.Option("--home", help="capvector home (default: $CAPVECTOR_HOME)")]
 JsonOption = Annotated[bool, typer.Option("--json", help="print machine-readable JSON")]
 
 
