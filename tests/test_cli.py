@@ -423,7 +423,7 @@ SWALLOWED_SIGTERM = """
 import os, signal, subprocess, sys
 import capvector.flows.cli.main as cli
 
-def app(standalone_mode):
+def app(prog_name, standalone_mode):
     helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
     print(helper.pid, flush=True)
     def raising_handler(signum, frame):
