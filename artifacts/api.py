@@ -23,6 +23,7 @@ from pydantic import BaseModel
 from capvector.artifacts import home as home_mod
 from capvector.artifacts.catalogue import (
     EVALUATION_KIND,
+    VECTOR_SPECTRUM_KIND,
     VECTOR_STATS_KIND,
     Catalogue,
     Doc,
@@ -46,7 +47,9 @@ from capvector.artifacts.records import (
     ParentRef,
     RunRecord,
     ScoreRow,
+    SpectrumRow,
     TensorStat,
+    VectorSpectrumDoc,
     VectorStatsDoc,
 )
 from capvector.artifacts.store import ArtifactStore, ParentLike
@@ -286,6 +289,28 @@ class ArtifactsAPI:
         return self.register_json(
             doc, VECTOR_STATS_KIND, name or f"stats of {vector.name}", None, refs, **meta
         )
+
+    def register_vector_spectrum(
+        self,
+        vector_id: str,
+        tensors: Iterable[SpectrumRow | dict[str, Any]],
+        subtrahend_id: str | None = None,
+        name: str | None = None,
+        **meta: Any,
+    ) -> ArtifactRecord:
+        """Store the spectrum of each 2-D tensor of `vector_id − subtrahend_id` (of the vector alone
+        without a subtrahend) as a child of both (roles `spectrum_of` and `subtrahend`), so a rank
+        quoted in a report traces to the checkpoints it was measured on."""
+        vector = self.store.get(vector_id)
+        subtrahend = self.store.get(subtrahend_id) if subtrahend_id else None
+        doc = VectorSpectrumDoc(
+            vector_id=vector.id,
+            subtrahend_id=subtrahend.id if subtrahend else None,
+            tensors=[SpectrumRow.model_validate(t) for t in tensors],
+        )
+        refs = [(vector.id, "spectrum_of")] + ([(subtrahend.id, "subtrahend")] if subtrahend else [])
+        default = f"spectrum of {vector.name}" + (f" - {subtrahend.name}" if subtrahend else "")
+        return self.register_json(doc, VECTOR_SPECTRUM_KIND, name or default, None, refs, **meta)
 
     def record_run(self, run: RunRecord) -> None:
         """Create or update a flow run (store first, so rebuild and sync know it too)."""

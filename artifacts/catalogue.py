@@ -67,6 +67,7 @@ from capvector.artifacts.records import (
     MergedVector,
     RunRecord,
     ScoreRow,
+    VectorSpectrumDoc,
     VectorStatsDoc,
     utcnow,
 )
@@ -79,6 +80,7 @@ log = logging.getLogger(__name__)
 
 EVALUATION_KIND = "evaluation"
 VECTOR_STATS_KIND = "vector_stats"
+VECTOR_SPECTRUM_KIND = "vector_spectrum"
 T = TypeVar("T")
 # DuckDB refuses a second connection to a file that one thread of this process holds with another
 # configuration (read-only vs read-write), so threads of one process take turns per file.
@@ -102,7 +104,13 @@ def _process_lock(path: Path) -> threading.Lock:
         return _PROCESS_LOCKS.setdefault(key, threading.Lock())
 
 
-Doc = EvaluationDoc | VectorStatsDoc | None
+Doc = EvaluationDoc | VectorStatsDoc | VectorSpectrumDoc | None
+# The kinds whose content the catalogue indexes, and the model each is read as.
+INDEXED_DOCS: dict[str, type[BaseModel]] = {
+    EVALUATION_KIND: EvaluationDoc,
+    VECTOR_STATS_KIND: VectorStatsDoc,
+    VECTOR_SPECTRUM_KIND: VectorSpectrumDoc,
+}
 
 # Writes are a few rows: one thread halves the cost of opening the file (no worker pool to start).
 WRITE_CONFIG = {"threads": 1}
@@ -205,12 +213,10 @@ def _json(value: Any) -> str | None:
 
 
 def load_doc(store: Any, record: ArtifactRecord) -> Doc:
-    """The indexed content of evaluation and vector-stats artifacts (read and hash-checked from the store)."""
-    if record.kind == EVALUATION_KIND:
-        return EvaluationDoc.model_validate(store.open_json(record.id))
-    if record.kind == VECTOR_STATS_KIND:
-        return VectorStatsDoc.model_validate(store.open_json(record.id))
-    return None
+    """The indexed content of evaluation, vector-stats and vector-spectrum artifacts (read and
+    hash-checked from the store)."""
+    model = INDEXED_DOCS.get(record.kind)
+    return model.model_validate(store.open_json(record.id)) if model is not None else None
 
 
 def rows_for(record: ArtifactRecord, doc: Doc = None) -> dict[str, list[dict[str, Any]]]:
@@ -286,7 +292,25 @@ def rows_for(record: ArtifactRecord, doc: Doc = None) -> dict[str, list[dict[str
                     extras=_json(t.model_extra),
                 )
             )
+    elif isinstance(doc, VectorSpectrumDoc):
+        rows["vector_spectrum"] = _spectrum_rows(record.id, doc)
     return rows
+
+
+def _spectrum_rows(spectrum_id: str, doc: VectorSpectrumDoc) -> list[dict[str, Any]]:
+    """One row per tensor: its ranks and top singular value (the values themselves stay in the store)."""
+    common = dict(spectrum_id=spectrum_id, vector_id=doc.vector_id, subtrahend_id=doc.subtrahend_id)
+    counts = {"rows", "cols", "full_rank", "rank50", "rank90", "rank99"}
+    return [
+        dict(
+            common,
+            tensor=t.tensor,
+            module_kind=t.kind,
+            top_singular_value=t.top,
+            **t.model_dump(include=counts),
+        )
+        for t in doc.tensors
+    ]
 
 
 def run_row(run: RunRecord) -> dict[str, Any]:

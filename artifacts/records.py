@@ -270,6 +270,33 @@ class VectorStatsDoc(BaseModel):
     reference_id: str | None = None
 
 
+class SpectrumRow(BaseModel):
+    """The spectrum of one 2-D tensor of an update: its shape, the ranks holding 50 / 90 / 99 % of its
+    energy (squared singular values), its largest singular value and all of them, largest first."""
+
+    tensor: str
+    kind: str  # module kind: attention, mlp, encoder, action_head or other
+    rows: int
+    cols: int
+    full_rank: int
+    rank50: int
+    rank90: int
+    rank99: int
+    top: float
+    singular_values: list[float]
+
+
+class VectorSpectrumDoc(BaseModel):
+    """Content of a `kind="vector_spectrum"` artifact: the spectrum of each 2-D tensor of the update
+    `vector_id − subtrahend_id` (B − A), or of the vector `vector_id` itself without a subtrahend. A
+    child of both (roles `spectrum_of` and `subtrahend`); the ids are part of the content, so the same
+    difference of other checkpoints is another artifact, each with its own lineage."""
+
+    vector_id: str
+    subtrahend_id: str | None = None
+    tensors: list[SpectrumRow]
+
+
 class LineageRow(BaseModel):
     """One ancestor or descendant: depth counts edges from the start; roles read from the start outwards."""
 

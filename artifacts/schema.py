@@ -59,19 +59,32 @@ V3 = """
 ALTER TABLE artifacts ADD COLUMN sealed BOOLEAN;
 """
 
+# One row per 2-D tensor of a `vector_spectrum` artifact (`capvector vector spectrum`): its ranks at 50 / 90
+# / 99 % of the energy and its largest singular value; the singular values themselves stay in the artifact.
+V4 = """
+CREATE TABLE vector_spectrum (
+    spectrum_id VARCHAR NOT NULL, vector_id VARCHAR NOT NULL, subtrahend_id VARCHAR,
+    tensor VARCHAR NOT NULL, module_kind VARCHAR NOT NULL, rows BIGINT NOT NULL, cols BIGINT NOT NULL,
+    full_rank BIGINT NOT NULL, rank50 BIGINT NOT NULL, rank90 BIGINT NOT NULL, rank99 BIGINT NOT NULL,
+    top_singular_value DOUBLE NOT NULL,
+    PRIMARY KEY (spectrum_id, tensor)
+);
+"""
+
 SCHEMA_VERSION_DDL = (
     "CREATE TABLE IF NOT EXISTS schema_version (version INTEGER PRIMARY KEY, applied_at TIMESTAMP)"
 )
 
 # Append (version, sql) pairs; never edit an applied one. Versions must increase by one.
-MIGRATIONS: list[tuple[int, str]] = [(1, V1), (2, V2), (3, V3)]
+MIGRATIONS: list[tuple[int, str]] = [(1, V1), (2, V2), (3, V3), (4, V4)]
 
-DATA_TABLES = ("artifacts", "edges", "vector_stats", "eval_episodes", "eval_tasks", "runs")
+DATA_TABLES = ("artifacts", "edges", "vector_stats", "vector_spectrum", "eval_episodes", "eval_tasks", "runs")
 # Rows derived from one artifact, by the column naming it: what `gc` removes for an artifact that is gone.
 ARTIFACT_COLUMNS = {
     "artifacts": "id",
     "edges": "child",
     "vector_stats": "stats_id",
+    "vector_spectrum": "spectrum_id",
     "eval_episodes": "evaluation_id",
     "eval_tasks": "evaluation_id",
 }

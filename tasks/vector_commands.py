@@ -34,10 +34,11 @@ from pathlib import Path
 from typing import Any
 
 from capvector.artifacts.hashing import hash_file, manifest_id
-from capvector.artifacts.records import ArtifactRecord
+from capvector.artifacts.records import ArtifactRecord, utcnow
 from capvector.artifacts.store import copy_file, copy_in, flush_soon, fsync_file
-from capvector.core.vectors import vector_ops
+from capvector.core.vectors import spectrum, vector_ops
 from capvector.core.vectors.safetensors_io import Checkpoint, CheckpointError, parse_size
+from capvector.core.vectors.spectrum import TensorSpectrum
 from capvector.core.vectors.vector_ops import VectorStat
 from capvector.tasks.runtime.workspace import Workspace, library_versions, provenance
 
@@ -512,32 +513,69 @@ def _refuse_repeated(refs: list[str], located: list[Input]) -> None:
             raise ValueError(f"{ref!r} {same} (inputs {j} and {i}): each vector counts once in a mean")
 
 
+def _measure(
+    workspace: Workspace,
+    refs: list[tuple[str | None, str]],
+    measure: Callable[..., Any],
+    register: Callable[[Any, list[str | None], dict], ArtifactRecord],
+) -> tuple[Any, ArtifactRecord]:
+    """A measurement of its inputs (`measure(*paths)`, None for a ref of None) and its artifact.
+
+    The inputs are copied now (a measurement does not hash what it reads); once it succeeds, the stored
+    ones are checked against their ids (hashed now) and the copies against what was read, the copies
+    are registered, and `register(result, input ids, parent_hashes)` stores the result."""
+    with workspace.api.store.staging() as stage:
+        located = _locate_all(workspace, refs, stage, copy_now=True)
+        items = list({id(x): x for x in located if x is not None}.values())
+        with _blaming_damage(workspace, items):
+            result = measure(*(x.path if x is not None else None for x in located))
+        verified = _check_stored(workspace, items, {})
+        for item in items:
+            _check_copy(item)
+        ids = _commit(workspace, items, {}, verified)
+        record = register(result, [ids[id(x)] if x is not None else None for x in located], verified)
+    return result, record
+
+
 def stats_cli(
     workspace: Workspace, vector: str, base: str | None, reference: str | None
 ) -> tuple[list[VectorStat], ArtifactRecord, bool]:
     """The vector's statistics, their `vector_stats` artifact, and whether it was recorded before: the
     same vector, base and reference give the same document, hence the same artifact (content
     addressing), so a repeated call reuses it and registers nothing new."""
-    from capvector.artifacts.records import utcnow
     from capvector.tasks.steps.vectors import stat_rows  # imports Prefect: only this command needs it
 
-    started = utcnow()
-    with workspace.api.store.staging() as stage:
-        refs = [(vector, "vector"), (base or None, "checkpoint"), (reference or None, "vector")]
-        v, b, r = _locate_all(workspace, refs, stage, copy_now=True)  # stats does not hash what it reads
-        items = list({id(x): x for x in (v, b, r) if x is not None}.values())
-        with _blaming_damage(workspace, items):
-            rows = vector_ops.stats(v.path, b.path if b else None, r.path if r else None)
-        verified = _check_stored(workspace, items, {})  # hashed now
-        for item in items:
-            _check_copy(item)
-        ids = _commit(workspace, items, {}, verified)
-        record = workspace.api.register_vector_stats(
-            ids[id(v)],
-            stat_rows(rows),
-            base_id=ids[id(b)] if b else None,
-            reference_id=ids[id(r)] if r else None,
-            parent_hashes=verified,
+    def register(rows: list[VectorStat], ids: list[str | None], verified: dict) -> ArtifactRecord:
+        vector_id, base_id, reference_id = ids
+        return workspace.api.register_vector_stats(
+            vector_id, stat_rows(rows), base_id=base_id, reference_id=reference_id, parent_hashes=verified,
             **_provenance(),
-        )
+        )  # fmt: skip
+
+    started = utcnow()
+    refs = [(vector, "vector"), (base or None, "checkpoint"), (reference or None, "vector")]
+    rows, record = _measure(workspace, refs, vector_ops.stats, register)
+    return rows, record, record.created_at < started
+
+
+def spectrum_cli(
+    workspace: Workspace, a: str, b: str | None = None
+) -> tuple[list[TensorSpectrum], ArtifactRecord, bool]:
+    """The spectrum of B − A (two checkpoints), or of the vector A alone without B; its `vector_spectrum`
+    artifact; and whether it was recorded before (the same inputs give the same document, hence the same
+    artifact, as for `stats_cli`)."""
+
+    def register(rows: list[TensorSpectrum], ids: list[str | None], verified: dict) -> ArtifactRecord:
+        vector_id, subtrahend_id = ids
+        return workspace.api.register_vector_spectrum(
+            vector_id, [r.model_dump() for r in rows], subtrahend_id=subtrahend_id, parent_hashes=verified,
+            **_provenance(),
+        )  # fmt: skip
+
+    started = utcnow()
+    if b is None:
+        refs = [(a, "vector"), (None, "checkpoint")]
+    else:
+        refs = [(b, "checkpoint"), (a, "checkpoint")]
+    rows, record = _measure(workspace, refs, spectrum.spectrum, register)
     return rows, record, record.created_at < started

@@ -1407,6 +1407,14 @@ def _float64_chunk(
     return _widen(raw.view(STORAGE[spec.dtype]), spec.dtype).astype(np.float64, copy=False)
 
 
+def tensor_float64(ckpt: Checkpoint, name: str) -> np.ndarray:
+    """One whole tensor as float64 in its shape, its stored values converted as `stats` converts its
+    pieces: for a computation that needs the tensor at once (a spectrum), one tensor at a time."""
+    spec = ckpt.specs[name]
+    raw = ckpt.read_bytes(name).view(STORAGE[spec.dtype])
+    return _widen(raw, spec.dtype).astype(np.float64, copy=False).reshape(spec.shape)
+
+
 def _row(level: str, name: str, s: dict[str, float], others: dict) -> VectorStat:
     l2 = math.sqrt(s["sq"])
     row = VectorStat(level=level, name=name, numel=int(s["numel"]), l2=l2)

@@ -1,4 +1,4 @@
-"""`capvector vector extract | merge | mean | stats`: capability-vector arithmetic on safetensors
+"""`capvector vector extract | merge | mean | stats | spectrum`: capability-vector arithmetic on safetensors
 checkpoints."""
 
 from __future__ import annotations
@@ -159,3 +159,70 @@ def vector_stats(
 
 def _fmt(x: float | None) -> str:
     return "-" if x is None else f"{x:.4g}"
+
+
+@vector_app.command("spectrum")
+def vector_spectrum(
+    a: Annotated[str, typer.Argument(help="A of B − A, or a vector: file, sharded dir or artifact id")],
+    b: Annotated[str | None, typer.Argument(help="B, the checkpoint after the update")] = None,
+    figure: Annotated[
+        Path | None, typer.Option("--figure", help="PNG: rank at 90 / 99 % energy per tensor over full rank")
+    ] = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Singular values of each 2-D tensor of B − A (or of a vector): the ranks holding 50 / 90 / 99 % of
+    its energy, by module kind (attention, mlp, encoder, action_head, other); registered in the catalogue."""
+    from capvector.tasks.vector_commands import spectrum_cli
+
+    rows, record, reused = spectrum_cli(workspace(home), a, b)
+    if figure is not None:
+        _plot_spectrum(rows, figure)
+    if as_json:
+        print_json([r.model_dump() for r in rows])
+    else:
+        console.print(_spectrum_table(rows))
+    said = "recorded before: reused" if reused else "recorded"
+    err.print(f"spectrum artifact {record.id} ({said})", highlight=False)
+
+
+def _by_kind(rows: list) -> list:
+    """The rows grouped by module kind (in `KIND_ORDER`), each kind's in checkpoint order."""
+    from capvector.core.vectors.spectrum import KIND_ORDER
+
+    return sorted(rows, key=lambda r: KIND_ORDER.index(r.kind))
+
+
+def _spectrum_table(rows: list) -> object:
+    table = Table("kind", "tensor", "shape", "full rank", "rank 50%", "rank 90%", "rank 99%", "σ₁")
+    for r in _by_kind(rows):
+        ranks = (str(n) for n in (r.full_rank, r.rank50, r.rank90, r.rank99))
+        table.add_row(r.kind, r.tensor, f"{r.rows}×{r.cols}", *ranks, f"{r.top:.4g}")
+    return table
+
+
+def _plot_spectrum(rows: list, path: Path) -> None:
+    """Per 2-D tensor (checkpoint order), its rank at 90 % and at 99 % energy as a share of its full
+    rank, one marker per module kind: where an update is low-rank, and in which modules."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from capvector.core.vectors.spectrum import KIND_ORDER
+
+    fig, axes = plt.subplots(2, 1, sharex=True, figsize=(max(6.0, 0.1 * len(rows) + 2), 5))
+    for ax, (field, energy) in zip(axes, (("rank90", "90 %"), ("rank99", "99 %")), strict=True):
+        for kind, marker in zip(KIND_ORDER, "os^Dx", strict=True):
+            at = [i for i, r in enumerate(rows) if r.kind == kind]
+            if at:
+                share = [getattr(rows[i], field) / rows[i].full_rank for i in at]
+                ax.scatter(at, share, marker=marker, label=kind, s=18)
+        ax.set_ylabel(f"rank at {energy} energy\n/ full rank")
+        ax.set_ylim(0, 1.08)
+    axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))  # beside: no point hidden
+    axes[1].set_xlabel("2-D tensor, in checkpoint order")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
