@@ -543,6 +543,48 @@ def test_on_a_smoke_run_every_edge_appears_in_the_lineage_views(smoke_home):
         assert parent in tree and child in tree
 
 
+def test_every_read_command_prints_json_with_json(smoke_home, ckpts, tmp_path):
+    """Issue 37: a script can pass `--json` to every read command and parse what it prints; where a
+    command has `--format json`, `--json` prints the same."""
+    home, ids = smoke_home
+    api = ArtifactsAPI(str(home))
+    capvector, sft = ids["checkpoints"]["capvector/seed0"], ids["checkpoints"]["sft/seed0"]
+    (scored,) = read_scores(api, evaluations=[ids["evaluations"]["capvector/seed0"]])
+    protocol = ["--fingerprint", scored.fingerprint[:12]]  # other tests add other protocols
+    commands = {
+        "artifacts list": ["artifacts", "list"],
+        "artifacts show": ["artifacts", "show", capvector[:12]],
+        "lineage": ["lineage", capvector],
+        "scores": ["scores", capvector, *protocol],
+        "compare": ["compare", capvector, sft, *protocol],
+        "report": ["report", ids["report"], "-o", str(tmp_path / "report.md")],
+        "sql": ["sql", "SELECT kind, count(*) AS n FROM artifacts GROUP BY kind"],
+        "runs": ["runs", *protocol],
+        "export": ["export", str(tmp_path / "export"), *protocol],
+        "verify": ["verify", capvector],
+        "catalogue verify": ["catalogue", "verify"],
+    }
+    got = {name: json.loads(invoke(home, *args, "--json").stdout) for name, args in commands.items()}
+    got["config show"] = json.loads(invoke(home, "config", "show", "--preset", "smoke", "--json").stdout)
+    vector = ["vector", "stats", str(ckpts["paths"]["ao"]), "--base", str(ckpts["paths"]["pt"]), "--json"]
+    got["vector stats"] = json.loads(invoke(tmp_path / "home", *vector).stdout)
+    assert got["artifacts show"]["id"] == capvector and capvector in {r["id"] for r in got["artifacts list"]}
+    for name, args in (("lineage", ["lineage", capvector]), ("runs", ["runs", *protocol])):
+        assert got[name] == json.loads(invoke(home, *args, "--format", "json").stdout), name
+    assert {r["checkpoint_id"] for r in got["scores"]} >= {capvector}
+    assert [r["checkpoint_id"] for r in got["compare"]["rows"]] == [capvector, sft]
+    assert got["report"] == {"path": str(tmp_path / "report.md"), "kind": "report", "id": ids["report"]}
+    assert {r["kind"] for r in got["sql"]} >= {"checkpoint", "evaluation"}
+    assert {r["id"] for r in got["runs"]} >= {capvector, sft}
+    assert got["export"]["runs"]["rows"] == len(got["runs"])
+    assert [v["status"] for v in got["verify"]] == ["ok"] and got["catalogue verify"]["ok"]
+    assert {r["field"] for r in got["config show"]} >= {"name"} and got["vector stats"]
+    mixed = CliRunner().invoke(
+        app, ["--home", str(home), "lineage", capvector, "--json", "--format", "mermaid"]
+    )
+    assert mixed.exit_code == 2 and "--json prints JSON" in mixed.output
+
+
 # The read-only commands and --help: none of these may be imported (issue 22: a query must not pay
 # for torch, pandas, prefect or metaworld).
 HEAVY = ("torch", "pandas", "prefect", "metaworld")

@@ -6,7 +6,10 @@ what it was, depths count kept hops; and the views draw the contracted edges, co
 hostile names still escaped.
 """
 
+import functools
+import hashlib
 import random
+import re
 from types import SimpleNamespace
 
 import duckdb
@@ -16,8 +19,9 @@ from typer.testing import CliRunner
 
 from capvector.artifacts.api import ArtifactsAPI
 from capvector.artifacts.catalogue import Catalogue
+from capvector.flows.cli import inspect_commands
 from capvector.flows.cli.main import app
-from capvector.flows.views.lineage import CHAIN, as_mermaid, as_tree, keep_kinds
+from capvector.flows.views.lineage import CHAIN, as_mermaid, as_tree, keep_kinds, mermaid_lineage
 
 KINDS = ("checkpoint", "vector", "evaluation", "selection", "dataset")
 
@@ -212,3 +216,117 @@ def test_cli_kinds_on_a_registered_history_keeps_names_escaped(tmp_path):
     assert (gamma[:12], meta[:12], "vector") in mermaid_edges(mermaid)
     descendants = lineage(pt, "--descendants", "--kinds", "checkpoint,report")
     assert (down[:12], report[:12], f"checkpoint{CHAIN}evaluation") in tree_edges(descendants, False)
+
+
+def study_history(path, runs=12, snapshots=4, evaluations=3):
+    """A study's history as the flows register it: θ_pt from the demos; per run, its snapshots and its
+    final checkpoint from θ_pt and the demos, each evaluated `evaluations` times, and every evaluation
+    a parent of the study: 44 edges a run, 529 in all."""
+    ids, edges = {}, []
+
+    def add(kind, name, *parents):
+        ids[name] = hashlib.sha256(name.encode()).hexdigest()
+        edges.extend((ids[parent], ids[name], role) for parent, role in parents)
+        return name, kind
+
+    named = [add("dataset", "demos"), add("checkpoint", "θ_pt", ("demos", "data"))]
+    for run in range(runs):
+        points = [f"run {run} @ {10 * (s + 1)} steps" for s in range(snapshots)]
+        named += [add("checkpoint", p, ("demos", "data"), ("θ_pt", "init")) for p in points]
+        starts = [("demos", "data"), ("θ_pt", "init")]
+        named.append(add("checkpoint", f"run {run}", *starts, *((p, "snapshot") for p in points)))
+        for checkpoint in [*points, f"run {run}"]:
+            named += [
+                add("evaluation", f"evaluate {checkpoint} #{e}", (checkpoint, "checkpoint"))
+                for e in range(evaluations)
+            ]
+    tested = [(name, "test") for name, kind in named if kind == "evaluation"]
+    named.append(add("study", "analyse study s", *tested))
+    cat = Catalogue(path / "catalogue.duckdb")
+    con = duckdb.connect(str(cat.path))
+    con.execute(  # one statement: a row at a time costs seconds
+        "INSERT INTO artifacts (id, kind, name, layout, size_bytes, n_files) "
+        "SELECT unnest($1), unnest($2), unnest($3), 'file', 1, 1",
+        [[ids[name] for name, _ in named], [kind for _, kind in named], [name for name, _ in named]],
+    )
+    con.execute(
+        "INSERT INTO edges (parent, child, role) SELECT unnest($1), unnest($2), unnest($3)",
+        [[edge[i] for edge in edges] for i in range(3)],
+    )
+    con.close()
+    return cat, ids
+
+
+def drawn(mermaid):
+    """The edges and the node labels of a Mermaid graph, its `%%` comments left aside."""
+    lines = [line for line in mermaid.splitlines() if not line.strip().startswith("%%")]
+    return mermaid_edges("\n".join(lines)), dict(re.findall(r'n([0-9a-f]{12})\["([^"]*)"\]', mermaid))
+
+
+def test_a_mermaid_lineage_over_500_edges_is_contracted_until_it_fits_with_a_note(tmp_path):
+    """Mermaid draws nothing past 500 edges (its default `maxEdges`): a bigger lineage is drawn with
+    each run's snapshots and each checkpoint's evaluations as one node, then (to fit a smaller limit)
+    every evaluation as one node, then every kind as one node; a note says what and how to see it whole."""
+    cat, ids = study_history(tmp_path)
+    study = ids["analyse study s"]
+    rows = cat.ancestors(study)
+    root = SimpleNamespace(id=study, kind="study", name="analyse study s")
+    whole, note = mermaid_lineage(rows, root, True, max_edges=10_000)
+    assert note is None and len(drawn(whole)[0]) == 529
+    graph, note = mermaid_lineage(rows, root, True)
+    assert as_mermaid(rows, root, True) == graph
+    assert graph.splitlines()[1] == "    %% " + note.removeprefix("> ").replace("**", "")
+    edges, labels = drawn(graph)
+    assert note.startswith("> **Lineage contracted:** its 529 edges are over Mermaid's limit of 500")
+    assert f"({len(edges)} edges drawn)" in note and f"`capvector lineage {study[:12]} --format json`" in note
+    assert "snapshots of each run and the evaluations of each checkpoint" in note and "--depth" in note
+    assert len(edges) <= 500
+    for run in range(12):
+        final = ids[f"run {run}"][:12]
+        snaps = f"4 snapshots of checkpoint run {run} [{final}]"
+        group = {v: k for k, v in labels.items()}
+        assert labels[final] == f"checkpoint run {run} [{final}]"
+        assert (group[snaps], final, "snapshot") in edges
+        assert (group[f"3 evaluations of checkpoint run {run} [{final}]"], study[:12], "test") in edges
+        assert (group[snaps], group[f"12 evaluations of {snaps}"], "checkpoint") in edges
+    assert not any(ids["run 0 @ 10 steps"][:12] == k or "evaluate" in v for k, v in labels.items())
+
+    edges, labels = drawn(mermaid_lineage(rows, root, True, max_edges=100)[0])
+    assert len(edges) <= 100 and "evaluation ×180" in labels.values()
+    assert {f"checkpoint run {r} [{ids[f'run {r}'][:12]}]" for r in range(12)} <= set(labels.values())
+    graph, note = mermaid_lineage(rows, root, True, max_edges=8)
+    edges, labels = drawn(graph)
+    assert "every kind is drawn as one node" in note and len(edges) <= 8
+    assert sorted(labels.values()) == sorted(
+        [
+            f"study analyse study s [{study[:12]}]",
+            "checkpoint ×61",
+            "evaluation ×180",
+            f"dataset demos [{ids['demos'][:12]}]",
+        ]
+    )
+    pretrained = SimpleNamespace(id=ids["θ_pt"], kind="checkpoint", name="θ_pt")
+    down, note = mermaid_lineage(cat.descendants(ids["θ_pt"]), pretrained, False, max_edges=100)
+    assert down.startswith("graph TD") and f"{ids['θ_pt'][:12]} --descendants --format json" in note
+
+
+def test_the_cli_prints_a_contracted_graph_on_stdout_and_the_note_on_stderr(tmp_path, monkeypatch):
+    api = ArtifactsAPI(str(tmp_path / "home"))
+    pt = api.register_json({"w": 0}, "checkpoint", "θ_pt").id
+    ft = api.register_json({"w": 1}, "checkpoint", "θ_ft", parents=[(pt, "init")]).id
+    evaluations = [
+        api.register_evaluation({"checkpoint_id": ft, "fingerprint": f"{i}" * 64, "episodes": []}, f"e{i}").id
+        for i in range(3)
+    ]
+    report = api.register_json(
+        {"r": 1}, "report", "report", parents=[(e, "evaluation") for e in evaluations]
+    ).id
+    limited = functools.partial(mermaid_lineage, max_edges=4)  # 7 edges: the 3 evaluations as one
+    monkeypatch.setattr(inspect_commands, "mermaid_lineage", limited)
+    result = CliRunner().invoke(
+        app, ["--home", str(tmp_path / "home"), "lineage", report, "--format", "mermaid"]
+    )
+    assert result.exit_code == 0, (result.output, result.exception)
+    edges, labels = drawn(result.stdout)
+    assert len(edges) == 3 and f"3 evaluations of checkpoint θ_ft [{ft[:12]}]" in labels.values()
+    assert result.stderr.startswith("> **Lineage contracted:** its 7 edges are over Mermaid's limit of 4")

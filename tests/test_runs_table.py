@@ -196,6 +196,32 @@ def test_a_studys_per_draw_and_per_replicate_runs_get_their_arm_draw_study_and_s
     assert rows_json(home, "--stage", "other") == {}
 
 
+def test_every_run_names_the_code_revision_that_trained_it(home, tmp_path, monkeypatch):
+    """Issue 37: a result is traced to the code that made it: `code_revision` is the `git describe` the
+    run's record keeps (`code_version`), in the table, its json and the exported runs."""
+    from capvector.artifacts import store
+
+    home, ids = home
+    api = ArtifactsAPI(str(home))
+    monkeypatch.setattr(store, "code_version", lambda: "git:v0.9-3-gabc1234")
+    older, _ = train(api, "downstream sft seed 7", [(ids["pt"], "init")], seed=7)
+    rows = rows_json(home)
+    assert rows["downstream sft seed 7"]["code_revision"] == "git:v0.9-3-gabc1234"
+    for row in rows.values():
+        assert row["code_revision"] == api.get(row["id"]).code_version
+    current = rows["downstream capvector seed 0"]["code_revision"]
+    assert current and current != "git:v0.9-3-gabc1234"
+    table = invoke(home, "runs").stdout.splitlines()
+    header = table[0].split()
+    assert header[header.index("train_s") + 1] == "code_revision"
+    assert any(line.startswith(older[:12]) and " git:v0.9-3-gabc1234 " in line for line in table)
+    invoke(home, "export", str(tmp_path / "export"))
+    exported = duckdb.connect().execute(
+        f"SELECT id, code_revision FROM read_parquet('{tmp_path / 'export' / 'runs.parquet'}')"
+    )
+    assert dict(exported.fetchall()) == {r["id"]: r["code_revision"] for r in rows.values()}
+
+
 def test_filters(home):
     home, _ = home
     assert set(rows_json(home, "--arm", "sft")) == {"downstream sft seed 0", "downstream sft seed 1"}

@@ -18,7 +18,7 @@ from capvector.flows.cli.common import (
     text_table,
     workspace,
 )
-from capvector.flows.views.lineage import as_mermaid, as_tree, edge_notes, keep_kinds
+from capvector.flows.views.lineage import as_tree, edge_notes, keep_kinds, mermaid_lineage
 
 artifacts_app = typer.Typer(no_args_is_help=True, help="List, show and get artifacts.")
 
@@ -48,8 +48,9 @@ def artifacts_list(
 
 
 @artifacts_app.command("show")
-def artifacts_show(artifact_id: str, home: HomeOption = None) -> None:
-    """The full record of one artifact (its sidecar: config, parents, versions, runs)."""
+def artifacts_show(artifact_id: str, home: HomeOption = None, as_json: JsonOption = False) -> None:
+    """The full record of one artifact (its sidecar: config, parents, versions, runs), as JSON with or
+    without `--json` (taken, as every read command takes it, so a script can pass it everywhere)."""
     print_json(workspace(home).api.get(artifact_id).model_dump(mode="json"))
 
 
@@ -87,6 +88,15 @@ def artifacts_get(
     print(target)
 
 
+def _json_format(fmt: str, as_json: bool, default: str) -> str:
+    """`--format json` when `--json` is given (with no other format asked for)."""
+    if not as_json:
+        return fmt
+    if fmt not in (default, "json"):
+        raise typer.BadParameter(f"--json prints JSON: give it or --format {fmt}, not both")
+    return "json"
+
+
 def lineage(
     artifact_id: str,
     descendants: Annotated[bool, typer.Option("--descendants", help="what descends from it")] = False,
@@ -97,11 +107,15 @@ def lineage(
     ] = None,
     hide: Annotated[str | None, typer.Option("--hide", help="leave out these kinds (contracted)")] = None,
     home: HomeOption = None,
+    as_json: JsonOption = False,
 ) -> None:
     """Ancestors (default) or descendants of an artifact, with the role of every edge.
 
     `--kinds`/`--hide` keep some kinds only; a path through the others becomes one edge (its roles
-    joined by →), so what is kept stays connected, and `--depth` counts the kept hops."""
+    joined by →), so what is kept stays connected, and `--depth` counts the kept hops. `--json` is
+    `--format json`. A Mermaid graph over Mermaid's edge limit is drawn contracted, with a note on
+    stderr saying what was grouped."""
+    fmt = _json_format(fmt, as_json, "tree")
     ws = workspace(home)
     record = ws.api.get(artifact_id)
     filtered = kinds is not None or hide is not None
@@ -113,7 +127,10 @@ def lineage(
     if fmt == "json":
         print_json([r.model_dump() for r in rows])
     elif fmt == "mermaid":
-        typer.echo(as_mermaid(rows, record, ancestors=not descendants, notes=notes))
+        graph, note = mermaid_lineage(rows, record, ancestors=not descendants, notes=notes)
+        typer.echo(graph)
+        if note:
+            typer.echo(note, err=True)  # stdout stays one graph, to paste whole
     elif fmt == "tree":
         typer.echo(as_tree(rows, record, notes))
     else:
@@ -223,8 +240,10 @@ def report(
     ] = None,
     notes: Annotated[Path | None, typer.Option(help="a Markdown file of analysis to include")] = None,
     home: HomeOption = None,
+    as_json: JsonOption = False,
 ) -> None:
-    """Markdown + PNG figures of a study (curves, paired differences, per task) or a pipeline report."""
+    """Markdown + PNG figures of a study (curves, paired differences, per task) or a pipeline report;
+    `--json` prints what was written (the file, and the study or report it shows) as JSON."""
     from capvector.flows.study.figures import default_report_path, latest_study_id, write_study_report
 
     ws = workspace(home)
@@ -234,7 +253,10 @@ def report(
         study_id = latest_study_id(ws)
     if study_id is not None:
         path = write_study_report(ws, study_id, out or default_report_path(ws, study_id))
-        console.print(f"wrote {path} and its figures")
+        if as_json:
+            print_json({"path": str(path), "kind": "study", "id": study_id})
+        else:
+            console.print(f"wrote {path} and its figures")
         return
     from capvector.flows.recipe.report import latest_report_id, write_report
 
@@ -248,7 +270,10 @@ def report(
     target = out or Path(ws.home) / "reports" / f"report-{rid[:12]}.md"
     text = notes.read_text() if notes else None
     path = write_report(ws, rid, target, sections, sweep_id, text)
-    console.print(f"wrote {path}")
+    if as_json:
+        print_json({"path": str(path), "kind": "report", "id": rid})
+    else:
+        console.print(f"wrote {path}")
 
 
 def sql(query: str, home: HomeOption = None, as_json: JsonOption = False) -> None:

@@ -7,7 +7,8 @@ from the catalogue alone:
 
 - study: the study whose flow run trained it (the `study` flow's config name), else every study whose
   analysis has it in its lineage; status: the state of the flow run that recorded it; train_s: its
-  training's wall time from its summary (steps trained here / steps per second);
+  training's wall time from its summary (steps trained here / steps per second); code_revision: the
+  `git describe` of the checkout that trained it (its record's `code_version`, a catalogue column);
 - stage and arm from its name as the flows give it: `downstream <arm> [draw|replicate <d>] seed <s>`
   (downstream), `tune <arm> ...` (tuning), `<arm> α=...` (sweep), `... θ_pt` (pretrain), `... θ_ft` /
   `... θ_ao` (extraction), anything else `other`;
@@ -47,7 +48,7 @@ FORMATS = ("table", "csv", "json", "parquet")
 # Every trained run (`runs`) and the checkpoint it had at each budget (`points`).
 RUNS_WITH = r"""
 WITH trained AS (
-    SELECT id, name, created_at, config->'train_step' AS ts, config->'summary' AS summary
+    SELECT id, name, created_at, code_version, config->'train_step' AS ts, config->'summary' AS summary
     FROM artifacts
     WHERE kind = 'checkpoint' AND (config->'train_step') IS NOT NULL AND (config->>'of_run') IS NULL
 ), starts AS (
@@ -120,6 +121,7 @@ WITH trained AS (
         TRY_CAST(t.ts->'train'->>'steps' AS BIGINT) AS steps,
         t.ts->'train'->'aux'->>'name' AS aux,
         TRY_CAST(t.ts->'train'->'aux'->>'weight' AS DOUBLE) AS aux_weight,
+        t.code_version AS code_revision,
         t.created_at
     FROM staged t LEFT JOIN alphas a ON a.run_id = t.id LEFT JOIN start_draws d ON d.run_id = t.id
     LEFT JOIN flow_runs f ON f.run_id = t.id LEFT JOIN run_studies s ON s.run_id = t.id
@@ -132,7 +134,7 @@ WITH trained AS (
 )"""
 RUN_COLUMNS = (
     "id, name, study, stage, arm, draw, replicate, seed, alpha, lambda_weight, lambda_mode, lambda_applied, "
-    "lr, adapter, steps, aux, aux_weight, status, train_s"
+    "lr, adapter, steps, aux, aux_weight, status, train_s, code_revision"
 )
 SCORED_WITH = """, scores AS (
     SELECT p.run_id, p.budget, t.task, arg_max(t.success_rate, t.evaluated_at) AS success
@@ -341,9 +343,15 @@ def runs(
         Path | None, typer.Option("-o", "--out", help="write here (csv, json; required for parquet)")
     ] = None,
     home: HomeOption = None,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="print machine-readable JSON (--format json)")
+    ] = False,
 ) -> None:
     """The experiment table: one row per trained run (arm, draw, seed, α, λ, lr, adapter, steps) with
     its success at every budget and task, from the evaluations of its checkpoint and its snapshots."""
+    if as_json and fmt not in ("table", "json"):
+        raise typer.BadParameter(f"--json prints JSON: give it or --format {fmt}, not both")
+    fmt = "json" if as_json else fmt
     if fmt not in FORMATS:
         raise typer.BadParameter(f"unknown format {fmt!r}; use {', '.join(FORMATS)}")
     if fmt == "parquet" and out is None:

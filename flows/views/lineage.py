@@ -7,7 +7,9 @@ row was first reached by. The tree shows each node in full once, under the node 
 through, and every other edge into it as a one-line reference marked ↑ (shown above) or ↓ (below).
 
 At study size a lineage has hundreds of nodes; `keep_kinds` keeps some kinds (checkpoints and vectors,
-say) and contracts the edges through the others, so what is kept stays connected as it was.
+say) and contracts the edges through the others, so what is kept stays connected as it was. Mermaid
+draws nothing past 500 edges: `mermaid_lineage` groups repeats (a run's snapshots, a checkpoint's
+evaluations), then kinds, until the graph fits, and says so.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import re
 import unicodedata
 from collections import deque
 from collections.abc import Collection, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 from capvector.artifacts.records import ArtifactRecord, LineageRow
@@ -250,34 +253,203 @@ def _kind_fill(kind: str | None) -> str:
     return FALLBACK_FILLS[digest[0] % len(FALLBACK_FILLS)]
 
 
-def as_mermaid(
+MERMAID_MAX_EDGES = 500
+"""Mermaid's default `maxEdges`: a graph with more edges is not drawn at all (an error in its place)."""
+
+
+@dataclass
+class MermaidGraph:
+    """What a Mermaid view draws: each node's label and kind, how many artifacts a node stands for
+    (`sizes`: a group's members; 1 when absent), and the edges (parent, child, role, label) in order."""
+
+    labels: dict[str, str]
+    kinds: dict[str, str | None]
+    edges: list[tuple[str, str, str, str]]
+    sizes: dict[str, int] = field(default_factory=dict)
+
+    def label(self, node: str) -> str:
+        return self.labels.get(node, node[:12])
+
+    def count(self, nodes: Sequence[str]) -> int:
+        return sum(self.sizes.get(n, 1) for n in nodes)
+
+
+def _mermaid_graph(
     rows: list[LineageRow], root: ArtifactRecord, ancestors: bool, notes: EdgeNotes | None = None
-) -> str:
-    """`graph BT` for ancestors (arrows point from parent to child), `graph TD` for descendants; nodes
-    are coloured by kind (a `classDef` per kind, then the nodes of each); an edge's label is its role
-    with its note (`notes`, e.g. a merge's α) when it has one."""
-    lines = ["graph " + ("BT" if ancestors else "TD")]
-    names = {r.id: _label(r.id, r.kind, r.name) for r in rows}
-    names[root.id] = _label(root.id, root.kind, root.name)
-
-    def node(artifact_id: str) -> str:
-        return f'n{artifact_id[:12]}["{mermaid_text(names.get(artifact_id, artifact_id[:12]))}"]'
-
+) -> MermaidGraph:
+    """Every edge among the rows, parent to child, labelled with its role and its note."""
+    labels = {r.id: _label(r.id, r.kind, r.name) for r in rows}
+    labels[root.id] = _label(root.id, root.kind, root.name)
+    edges = []
     for near, far, role, parent in lineage_edges(rows, root.id):
         if not parent:  # fallback hop: parent by direction
             parent = far if ancestors else near
         child = near if parent == far else far
-        label = _edge_label(role, parent, child, notes or {})
-        lines.append(f"    {node(parent)} -->|{mermaid_text(label)}| {node(child)}")
-    if len(lines) == 1:
-        lines.append(f"    {node(root.id)}")
-    kinds = {r.id: r.kind for r in rows} | {root.id: root.kind}
-    drawn = {m for line in lines[1:] for m in re.findall(r"\bn([0-9a-f]{12})\[", line)}
+        edges.append((parent, child, role, _edge_label(role, parent, child, notes or {})))
+    return MermaidGraph(labels, {r.id: r.kind for r in rows} | {root.id: root.kind}, edges)
+
+
+def _merged(
+    graph: MermaidGraph, groups: list[tuple[str, str | None, list[str]]], join_roles: bool = False
+) -> MermaidGraph:
+    """`graph` with the members of each group (label, kind, members) drawn as one node: an edge into
+    or out of a group drawn once per label, or once per pair of nodes with its labels joined."""
+    labels, kinds, sizes, into = dict(graph.labels), dict(graph.kinds), dict(graph.sizes), {}
+    for label, kind, members in groups:
+        group = hashlib.sha256("\n".join(sorted(members)).encode()).hexdigest()
+        labels[group], kinds[group], sizes[group] = label, kind, graph.count(members)
+        for member in members:
+            into[member] = group
+            for found in (labels, kinds, sizes):
+                found.pop(member, None)
+    merged: dict[tuple[str, str, str], list[str]] = {}
+    for parent, child, role, label in graph.edges:
+        parent, child = into.get(parent, parent), into.get(child, child)
+        if parent == child:
+            continue
+        said = merged.setdefault((parent, child, "" if join_roles else role), [])
+        if label not in said:
+            said.append(label)
+    edges = []
+    for (parent, child, role), said in merged.items():
+        if join_roles:
+            edges.append((parent, child, ", ".join(said), ", ".join(said)))
+        else:
+            edges.extend((parent, child, role, label) for label in said)
+    return MermaidGraph(labels, kinds, edges, sizes)
+
+
+def _members(group_of: dict[str, Any]) -> dict[Any, list[str]]:
+    """{group: its nodes} of {node: its group}, groups of one node left out (nothing to contract)."""
+    out: dict[Any, list[str]] = {}
+    for node, group in group_of.items():
+        out.setdefault(group, []).append(node)
+    return {group: nodes for group, nodes in out.items() if len(nodes) > 1}
+
+
+def _repeats_per_checkpoint(graph: MermaidGraph, root_id: str) -> MermaidGraph:
+    """The snapshots of each run as one node, then the evaluations of each checkpoint (or of a run's
+    snapshots, now one node) as one node."""
+    run_of: dict[str, str] = {}
+    for parent, child, role, _ in graph.edges:
+        if role == "snapshot" and parent != root_id:
+            run_of.setdefault(parent, child)
+    graph = _merged(
+        graph,
+        [
+            (f"{graph.count(m)} snapshots of {graph.label(run)}", "checkpoint", m)
+            for run, m in _members(run_of).items()
+        ],
+    )
+    checkpoint_of: dict[str, str] = {}
+    for parent, child, role, _ in graph.edges:
+        if role == "checkpoint" and graph.kinds.get(child) == "evaluation" and child != root_id:
+            checkpoint_of.setdefault(child, parent)
+    return _merged(
+        graph,
+        [
+            (f"{graph.count(m)} evaluations of {graph.label(checkpoint)}", "evaluation", m)
+            for checkpoint, m in _members(checkpoint_of).items()
+        ],
+    )
+
+
+def _by_kind(
+    graph: MermaidGraph, root_id: str, keep: Collection[str] = (), join_roles: bool = False
+) -> MermaidGraph:
+    """Every node but the root's and those of the kinds in `keep` drawn as one node per kind."""
+    kind_of = {
+        node: graph.kinds.get(node)
+        for edge in graph.edges
+        for node in edge[:2]
+        if node != root_id and graph.kinds.get(node) not in keep
+    }
+    groups = [(f"{kind or '?'} ×{graph.count(m)}", kind, m) for kind, m in _members(kind_of).items()]
+    return _merged(graph, groups, join_roles)
+
+
+# How a graph over MERMAID_MAX_EDGES is contracted: one step more at a time until it fits (each step
+# after the first also does what the steps before it did).
+CONTRACTIONS = (
+    ("the snapshots of each run and the evaluations of each checkpoint are drawn as one node each",
+     _repeats_per_checkpoint),
+    ("the snapshots of each run and the evaluations of each checkpoint are drawn as one node each, and "
+     "the artifacts of every kind but checkpoint and vector as one node per kind",
+     lambda graph, root_id: _by_kind(graph, root_id, keep=("checkpoint", "vector"))),
+    ("every kind is drawn as one node (the root apart), with one edge per pair of them, its roles joined",
+     lambda graph, root_id: _by_kind(graph, root_id, join_roles=True)),
+)  # fmt: skip
+
+
+def _contracted(graph: MermaidGraph, root_id: str, max_edges: int) -> tuple[MermaidGraph, str | None]:
+    """`graph` contracted (CONTRACTIONS) until it has at most `max_edges` edges, and what was done
+    (None when it fitted as it was)."""
+    done = None
+    for what, contract in CONTRACTIONS:
+        if len(graph.edges) <= max_edges:
+            break
+        graph, done = contract(graph, root_id), what
+    return graph, done
+
+
+def _contraction_note(
+    what: str, edges: tuple[int, int], max_edges: int, root: ArtifactRecord, ancestors: bool
+) -> str:
+    """One Markdown line: why the graph is not whole, what was grouped, and how to see it whole."""
+    command = f"capvector lineage {root.id[:12]}{'' if ancestors else ' --descendants'} --format json"
+    return (
+        f"> **Lineage contracted:** its {edges[0]} edges are over Mermaid's limit of {max_edges} "
+        f"(`maxEdges`), so {what} ({edges[1]} edges drawn). See it whole with "
+        f"`{command}`, or draw less of it with `--depth N` or `--kinds checkpoint,vector`."
+    )
+
+
+def _draw(graph: MermaidGraph, root_id: str, ancestors: bool, comment: str | None = None) -> str:
+    """The Mermaid text: edges, a `classDef` per kind and the nodes of each, `comment` as a `%%` line."""
+
+    def node(artifact_id: str) -> str:
+        return f'n{artifact_id[:12]}["{mermaid_text(graph.label(artifact_id))}"]'
+
+    lines = [
+        f"    {node(parent)} -->|{mermaid_text(label)}| {node(child)}"
+        for parent, child, _, label in graph.edges
+    ]
+    lines = lines or [f"    {node(root_id)}"]
+    drawn = {m for line in lines for m in re.findall(r"\bn([0-9a-f]{12})\[", line)}
     by_class: dict[str, tuple[str | None, list[str]]] = {}
-    for artifact_id, kind in sorted(kinds.items(), key=lambda kv: kv[0]):
+    for artifact_id, kind in sorted(graph.kinds.items(), key=lambda kv: kv[0]):
         if artifact_id[:12] in drawn:
             by_class.setdefault(_kind_class(kind), (kind, []))[1].append(f"n{artifact_id[:12]}")
     for cls, (kind, nodes) in sorted(by_class.items()):
         lines.append(f"    classDef {cls} fill:{_kind_fill(kind)},stroke:#555")
         lines.append(f"    class {','.join(nodes)} {cls}")
-    return "\n".join(lines)
+    head = ["graph " + ("BT" if ancestors else "TD"), *([f"    %% {comment}"] if comment else [])]
+    return "\n".join(head + lines)
+
+
+def mermaid_lineage(
+    rows: list[LineageRow],
+    root: ArtifactRecord,
+    ancestors: bool,
+    notes: EdgeNotes | None = None,
+    max_edges: int = MERMAID_MAX_EDGES,
+) -> tuple[str, str | None]:
+    """The Mermaid graph (see `as_mermaid`) and, when it had more than `max_edges` edges and was
+    contracted to fit (Mermaid draws nothing past its limit), a Markdown note saying so (also in the
+    graph, as a `%%` comment); None when it is whole."""
+    graph = _mermaid_graph(rows, root, ancestors, notes)
+    drawn, what = _contracted(graph, root.id, max_edges)
+    if what is None:
+        return _draw(graph, root.id, ancestors), None
+    note = _contraction_note(what, (len(graph.edges), len(drawn.edges)), max_edges, root, ancestors)
+    return _draw(drawn, root.id, ancestors, note.removeprefix("> ").replace("**", "")), note
+
+
+def as_mermaid(
+    rows: list[LineageRow], root: ArtifactRecord, ancestors: bool, notes: EdgeNotes | None = None
+) -> str:
+    """`graph BT` for ancestors (arrows point from parent to child), `graph TD` for descendants; nodes
+    are coloured by kind (a `classDef` per kind, then the nodes of each); an edge's label is its role
+    with its note (`notes`, e.g. a merge's α) when it has one. Over MERMAID_MAX_EDGES edges, contracted
+    (`mermaid_lineage`)."""
+    return mermaid_lineage(rows, root, ancestors, notes)[0]
