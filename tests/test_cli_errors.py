@@ -171,15 +171,15 @@ def test_switching_a_presets_flow_policy_back_to_l1_chunk_warns_in_one_line(tmp_
 @pytest.mark.parametrize("command", ["run", "study", "calibrate", "sweep"])
 def test_a_preset_given_by_its_absolute_path_names_the_log_file_by_its_stem(tmp_path, monkeypatch, command):
     """`--preset /abs/path/p.yaml` failed every flow command: the log file's name kept the slashes."""
-    from capvector.flows.cli import experiment_commands as flow_commands
+    from capvector.flows.cli import experiment_commands
     from capvector.tasks.runtime.progress import LOG_FILE_ENV
 
     monkeypatch.setenv(LOG_FILE_ENV, "")  # unset for _start_log, and restored after (delenv of an unset
     # variable records nothing, so the path _start_log sets would leak into every later test's CLI)
     monkeypatch.setenv("CAPVECTOR_QUIET", "1")
     home = tmp_path / "home"
-    flow_commands._start_log(f"{command} --preset {tmp_path}/my presets/study-small.v2.yaml", str(home))
+    experiment_commands._start_log(f"{command} --preset {tmp_path}/my presets/study-small.v2.yaml", str(home))
     log = Path(os.environ[LOG_FILE_ENV])
     assert log.parent == home / "logs" and log.name.startswith(f"{command}-study-small.v2-"), log
     log.write_text("ok")
-    assert flow_commands.log_slug("run --preset smoke") == "run-smoke"  # names as before
+    assert experiment_commands.log_slug("run --preset smoke") == "run-smoke"  # names as before

@@ -14,8 +14,7 @@ from typing import Annotated
 
 import typer
 
-from capvector.flows.cli import experiment_commands as flow_commands
-from capvector.flows.cli import inspect_commands
+from capvector.flows.cli import experiment_commands, inspect_commands
 from capvector.flows.cli.catalogue_commands import catalogue_app
 from capvector.flows.cli.common import State
 from capvector.flows.cli.config_commands import config_app
@@ -44,8 +43,8 @@ app.add_typer(config_app, name="config")
 app.command("verify")(verify)
 app.command("runs")(runs)
 app.command("export")(export)
-for command in (flow_commands.run, flow_commands.evaluate, flow_commands.reevaluate, flow_commands.study,
-                flow_commands.calibrate, flow_commands.sweep, flow_commands.schedule):  # fmt: skip
+for command in (experiment_commands.run, experiment_commands.evaluate, experiment_commands.reevaluate, experiment_commands.study,
+                experiment_commands.calibrate, experiment_commands.sweep, experiment_commands.schedule):  # fmt: skip
     app.command()(command)
 for command in (inspect_commands.lineage, inspect_commands.scores, inspect_commands.compare,
                 inspect_commands.report, inspect_commands.sql):  # fmt: skip
