@@ -43,9 +43,8 @@ app.add_typer(config_app, name="config")
 app.command("verify")(verify)
 app.command("runs")(runs)
 app.command("export")(export)
-for command in (experiment_commands.run, experiment_commands.evaluate, experiment_commands.reevaluate, experiment_commands.study,
-                experiment_commands.calibrate, experiment_commands.sweep, experiment_commands.schedule):  # fmt: skip
-    app.command()(command)
+for name in ("run", "evaluate", "reevaluate", "study", "calibrate", "sweep", "schedule"):
+    app.command()(getattr(experiment_commands, name))
 for command in (inspect_commands.lineage, inspect_commands.scores, inspect_commands.compare,
                 inspect_commands.report, inspect_commands.sql):  # fmt: skip
     app.command()(command)
