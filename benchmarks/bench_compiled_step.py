@@ -18,34 +18,12 @@ import time
 from pathlib import Path
 
 import torch
+from bench_train_cuda import make_dataset  # run as a script: benchmarks/ is on sys.path
 
 from capvector.core.policies.base import build_policy
-from capvector.core.simulation.demos import DatasetMeta, DemoDataset
+from capvector.core.simulation.demos import DemoDataset
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def make_dataset(episodes: int = 16, length: int = 50) -> DemoDataset:
-    """Contract-shaped state demonstrations (no rollouts needed)."""
-    g = torch.Generator().manual_seed(0)
-    n = episodes * length
-    state = torch.randn(n, 39, generator=g)
-    tensors = {
-        "state": state,
-        "proprio": state[:, :4].clone(),
-        "action": torch.tanh(state[:, :4] + 0.5 * state[:, 35:39]),
-        "episode": torch.arange(episodes).repeat_interleave(length),
-        "step": torch.arange(length).repeat(episodes),
-        "task": (torch.arange(episodes) % 2).repeat_interleave(length),
-    }
-    tasks = ["reach-v3", "push-v3"]
-    meta = DatasetMeta(
-        tasks=tasks, instructions=["reach to the goal", "push the puck to the goal"], obs_mode="state",
-        camera="corner2", image_size=16, horizon=length, episodes_per_task=episodes // 2, seed_offset=0,
-        seeds={t: list(range(episodes // 2)) for t in tasks}, failures={t: 0 for t in tasks},
-        n_episodes=episodes, n_steps=n,
-    )  # fmt: skip
-    return DemoDataset.create(tensors, meta)
 
 
 def run(compiled: bool, steps: int, warmup: int, dataset: DemoDataset, batches: list) -> dict:

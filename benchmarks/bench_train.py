@@ -28,14 +28,21 @@ RESULTS = ROOT / "results"
 TYPES = ["l1_chunk", "flow"]
 
 
-def plain_loop(policy: Policy, dataset, config: TrainConfig) -> None:
-    """The minimal loop a researcher would write for the same training."""
+def plain_loop(
+    policy: Policy, dataset, config: TrainConfig, device: torch.device = torch.device("cpu")
+) -> None:
+    """The minimal loop a researcher would write for the same training, on `device`. The policy draws
+    its loss's randomness from a generator on `device`, as in `train` (without one, flow matching draws
+    its times on the CPU and copies them over each step: a cost that is not the trainer's)."""
+    if config.num_threads:
+        torch.set_num_threads(config.num_threads)
     policy.fit_normalizer(dataset.tensors)
-    n, make_batch = policy.make_batcher(dataset, torch.device("cpu"))
+    n, make_batch = policy.make_batcher(dataset, device)
+    policy.to(device).train()
+    policy.set_generator(torch.Generator(device=device).manual_seed(config.seed))
     params = list(policy.parameters())
     optimizer = torch.optim.AdamW(_param_groups(params, config.weight_decay), lr=config.lr)
     generator = torch.Generator().manual_seed(config.seed)
-    policy.train()
     for step in range(config.steps):
         for group in optimizer.param_groups:
             group["lr"] = lr_at(step, config)

@@ -33,11 +33,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from bench_train import plain_loop  # run as a script: benchmarks/ is on sys.path
 
 from capvector.core.policies.base import Policy, build_policy
 from capvector.core.simulation.demos import DatasetMeta, DemoDataset
 from capvector.core.training.device import resolve_device, run_environment
-from capvector.core.training.trainer import TrainConfig, _param_groups, lr_at, train
+from capvector.core.training.trainer import TrainConfig, train
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TYPES = ["l1_chunk", "flow"]
@@ -90,31 +91,6 @@ def timed(fn: Callable[[], Any], device: torch.device) -> tuple[float, Any]:
     out = fn()
     synchronize(device)
     return time.perf_counter() - start, out
-
-
-def plain_loop(policy: Policy, dataset, config: TrainConfig, device: torch.device) -> None:
-    """The minimal loop a researcher would write for the same training, on `device`. The policy draws
-    its loss's randomness from a generator on `device`, as in `train` (without one, flow matching draws
-    its times on the CPU and copies them over each step: a cost that is not the trainer's)."""
-    if config.num_threads:
-        torch.set_num_threads(config.num_threads)
-    policy.fit_normalizer(dataset.tensors)
-    n, make_batch = policy.make_batcher(dataset, device)
-    policy.to(device).train()
-    policy.set_generator(torch.Generator(device=device).manual_seed(config.seed))
-    params = list(policy.parameters())
-    optimizer = torch.optim.AdamW(_param_groups(params, config.weight_decay), lr=config.lr)
-    generator = torch.Generator().manual_seed(config.seed)
-    for step in range(config.steps):
-        for group in optimizer.param_groups:
-            group["lr"] = lr_at(step, config)
-        loss = policy.compute_loss(
-            make_batch(torch.randint(n, (config.batch_size,), generator=generator))
-        ).loss
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, config.grad_clip)
-        optimizer.step()
 
 
 class Bench:
