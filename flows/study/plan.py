@@ -461,18 +461,15 @@ def _tune_alpha_lambda(study: _Study, base: dict[str, Any], extraction: dict[str
     """CapVector's α × λ, chosen on validation goals from runs at the tuning seeds; the selection's id."""
     cfg, s, submit, tunes = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seeds
     vectors = _tuning_vectors(study, base, extraction)
-    shared = len(set(map(id, vectors.values()))) == 1 and len(tunes) > 1
     grid_cells = []
     for alpha in s.alphas:
-        merged: dict[int, Any] = {}
-        for t in tunes:
-            if shared and merged:
-                merged[t] = next(iter(merged.values()))
-                continue
-            label = f"tune merge θ_meta α={alpha}"
-            label = label if shared else _seeded(label, t, tunes)
-            merge_inputs = {"base": base["pretrained"], "vector": vectors[t]}
-            merged[t] = submit(merge_task, label, merge_inputs, cfg.merge_config(alpha))
+        label, merge = f"tune merge θ_meta α={alpha}", cfg.merge_config(alpha)
+        if s.tuning_vector_draws:  # one γ̄_tune for every tuning seed: one θ_meta per α
+            inputs = {"base": base["pretrained"], "vector": vectors[tunes[0]]}
+            merged = dict.fromkeys(tunes, submit(merge_task, label, inputs, merge))
+        else:
+            pairs = {t: {"base": base["pretrained"], "vector": vectors[t]} for t in tunes}
+            merged = {t: submit(merge_task, _seeded(label, t, tunes), pairs[t], merge) for t in tunes}
         lambdas = [("lambda_scale", x, f"λ={x}") for x in s.lambda_scales]
         lambdas += [("lambda_absolute", x, f"λ_abs={x:g}") for x in s.lambdas]
         for form, value, name in lambdas:
