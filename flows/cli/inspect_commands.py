@@ -65,6 +65,8 @@ def artifacts_get(
     the path written."""
     import shutil
 
+    from capvector.artifacts.store import copy_in
+
     ws = workspace(home)
     record = ws.api.get(artifact_id)
     source = ws.api.path(record.id)  # re-hashed: changed bytes are an error naming the id
@@ -73,18 +75,16 @@ def artifacts_get(
         raise FileExistsError(f"{target} exists: artifacts get writes only to a new path")
     target.parent.mkdir(parents=True, exist_ok=True)
     staged = target.with_name(f".{target.name}.partial")
-    shutil.rmtree(staged, ignore_errors=True)
+
+    def discard() -> None:
+        shutil.rmtree(staged) if staged.is_dir() else staged.unlink(missing_ok=True)
+
+    discard()  # left by an interrupted get
     try:
-        if record.layout == "file":
-            shutil.copyfile(source, staged)
-        else:
-            shutil.copytree(source, staged)
+        copy_in(source, staged)  # the store's copy: reflinks where the filesystem has them
         staged.rename(target)
     finally:
-        if staged.is_dir():
-            shutil.rmtree(staged, ignore_errors=True)
-        elif staged.exists():
-            staged.unlink()
+        discard()
     print(target)
 
 
