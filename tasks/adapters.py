@@ -1,8 +1,7 @@
 """How a training step fine-tunes: full weights, LoRA or LoRA-SP, as entries of one registry.
 
 Each entry knows what its form does at every point of a training step, so `capvector.tasks.steps.training`
-asks the
-entry instead of branching on its name: its config section, how it is applied to the model, the extra
+asks the entry instead of branching on its name: its config section, how it is applied to the model, the extra
 losses it trains with, which orthogonal-loss mode it takes, and how it ends (the adapter saved as its own
 artifact, then merged so the checkpoint holds dense weights). A new form is one class here (peft's
 `register_peft_method` pattern).

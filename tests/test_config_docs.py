@@ -1,9 +1,8 @@
 """Every field a preset user edits is documented (issue 22, item 4), and `capvector config show` prints it.
 
 `capvector.flows.cli.config_commands.describe` yields each leaf field of a resolved preset with the
-description its
-model carries (`Field(description=...)` or its class's `Args:` line); a field added without one fails
-here, naming the preset and the dotted path a user would `--set`.
+description its model carries (`Field(description=...)` or its class's `Args:` line); a field added without
+one fails here, naming the preset and the dotted path a user would `--set`.
 """
 
 import json

@@ -1,10 +1,9 @@
 """A training step killed on one machine resumes on another (issue 23, item 5).
 
 Each resumable checkpoint is copied to a shared scratch folder (capvector.tasks.runtime.scratch:
-`<home>/scratch` for a
-home on S3, here a local moto server; `CAPVECTOR_SCRATCH` for any home), files first and the manifest
-naming them last. The same step run on another machine (another CAPVECTOR_CACHE: no local run dir)
-fetches the newest complete one and the trainer resumes from it: the same weights, bit for bit, as an
+`<home>/scratch` for a home on S3, here a local moto server; `CAPVECTOR_SCRATCH` for any home), files first
+and the manifest naming them last. The same step run on another machine (another CAPVECTOR_CACHE: no local run
+dir) fetches the newest complete one and the trainer resumes from it: the same weights, bit for bit, as an
 uninterrupted run. The scratch folder is removed once the step's checkpoint is registered.
 """
 

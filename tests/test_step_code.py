@@ -80,7 +80,7 @@ from . import relative
 
 def test_a_lazy_import_is_in_the_closure() -> None:
     """capvector.tasks.steps.evaluation imports Prefect's artifacts inside a function; project modules
-    imported that
-    way (capvector.tasks.steps.held_out_loss via capvector.core.training.held_out_loss) must count too."""
+    imported that way (capvector.tasks.steps.held_out_loss via capvector.core.training.held_out_loss) must
+    count too."""
     assert "capvector.core.training.held_out_loss" in module_closure("capvector.tasks.steps.held_out_loss")
     assert "capvector.core.simulation.demos" in module_closure("capvector.tasks.steps.held_out_loss")

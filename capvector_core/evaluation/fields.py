@@ -1,8 +1,7 @@
 """What each user-set `EvalConfig` field means and defaults to, declared once: the model's fields
 (capvector.core.evaluation.rollouts) and `capvector evaluate`'s options (capvector.flows.cli.eval_options)
-both read this
-table. Constraints stay on the model, which names the field a bad value fails. No imports, so the
-command line builds its options without loading MuJoCo, torch or pydantic."""
+both read this table. Constraints stay on the model, which names the field a bad value fails. No imports, so
+the command line builds its options without loading MuJoCo, torch or pydantic."""
 
 from typing import Any, NamedTuple
 

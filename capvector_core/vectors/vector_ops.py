@@ -23,11 +23,10 @@ sharded Hugging Face one. Conventions:
 
 Name filters: `include`/`exclude` are lists of patterns in the project's one syntax
 (`capvector.core.vectors.module_patterns`, shared with LoRA targets): a shell-style glob on the whole name
-(`*`
-also crosses dots: `backbone.*`) or on its trailing dotted components (`attn.*_proj.weight`), or, prefixed
-with `re:`, a Python regular expression that must match the whole name (`re:blocks\\.[0-3]\\..*`). A tensor
-is selected when it matches some include pattern (or there is none) and no exclude pattern. A pattern that
-matches no tensor at all, or a selection that is empty, is an error (it is almost always a typo).
+(`*` also crosses dots: `backbone.*`) or on its trailing dotted components (`attn.*_proj.weight`), or,
+prefixed with `re:`, a Python regular expression that must match the whole name (`re:blocks\\.[0-3]\\..*`). A
+tensor is selected when it matches some include pattern (or there is none) and no exclude pattern. A pattern
+that matches no tensor at all, or a selection that is empty, is an error (it is almost always a typo).
 """
 
 from __future__ import annotations

@@ -4,8 +4,7 @@
 
 The store is the truth and the catalogue an index of it. Every command opens the catalogue without the
 automatic catch-up (capvector.artifacts.api), so `verify` reports what an open would have repaired. `gc`
-removes
-what the store itself left over; `housekeeping` never looks at the store or the catalogue.
+removes what the store itself left over; `housekeeping` never looks at the store or the catalogue.
 """
 
 from __future__ import annotations

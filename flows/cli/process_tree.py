@@ -56,8 +56,8 @@ def stop_on_signals() -> Callable[[], bool]:
     SIGKILL would, and Prefect's pending events (run states, logs for the UI) are dropped with the
     server that would have taken them, instead of being retried for minutes against a stopped one.
     The server is out of the terminal's process group (capvector.flows.runtime.prefect_server), so Ctrl-C
-    reaches only the
-    CLI and its workers and the CLI says how the run ended: `interrupted`, exit 130 (143 on SIGTERM).
+    reaches only the CLI and its workers and the CLI says how the run ended: `interrupted`, exit 130 (143 on
+    SIGTERM).
 
     While a flow runs Prefect swaps in its own SIGTERM handler, which raises inside whatever is running:
     a DuckDB call turned that into "Query interrupted" and the signal was lost, and the flow engine's

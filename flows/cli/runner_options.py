@@ -1,11 +1,9 @@
 """The options that say where a flow's steps run, declared once: `capvector.flows.runtime.task_runner_fields`
-holds each
-`capvector.flows.runtime.task_runners.RunnerConfig` field's description (the model's field descriptions are
-these), and
-`runner_options` adds `--runner`, `--address`, `--workers`, `--cluster-class` and `--cluster-kwargs`
-to every command it decorates, the way mergekit adds its merge options from its config model. The
-command receives the checked `RunnerConfig` as `runner_config`; a bad value exits 2 naming the option,
-before any server, flow or worker starts. No pydantic here: `--help` and `sql` stay light."""
+holds each `capvector.flows.runtime.task_runners.RunnerConfig` field's description (the model's field
+descriptions are these), and `runner_options` adds `--runner`, `--address`, `--workers`, `--cluster-class` and
+`--cluster-kwargs` to every command it decorates, the way mergekit adds its merge options from its config
+model. The command receives the checked `RunnerConfig` as `runner_config`; a bad value exits 2 naming the
+option, before any server, flow or worker starts. No pydantic here: `--help` and `sql` stay light."""
 
 from __future__ import annotations
 

@@ -171,11 +171,10 @@ def choose_protocols(api: Any, choice: str | None) -> list[Protocol]:
     `test` or `validation`: every protocol starting at that goal-seed base (a study has one per task
     set, e.g. validation on D_ext and on D_down); a fingerprint or a unique prefix of 6+ characters:
     that one (capvector.flows.evaluation.protocols.resolve). Without a choice: `test` when anything was
-    evaluated on the
-    test goals (the one with the most evaluations where several were: one protocol per table unless
-    asked, `others_note` names the rest), else the one protocol there is; several others are an error
-    listing them. Two chosen
-    protocols that evaluated the same task are an error too: a column never mixes protocols."""
+    evaluated on the test goals (the one with the most evaluations where several were: one protocol per table
+    unless asked, `others_note` names the rest), else the one protocol there is; several others are an error
+    listing them. Two chosen protocols that evaluated the same task are an error too: a column never mixes
+    protocols."""
     choices = protocols(api, {fp for _, _, fp in _evaluated(api)})
     if not choices:
         if choice is not None:

@@ -7,8 +7,7 @@ a step the content cache answers runs in the flow's process, the others in the p
 processes, because steps seed torch's process-global RNG and must not share it, and because two
 training steps in two processes use both cores without contending for the GIL. Each worker is bound
 to the process that started it (capvector.tasks.runtime.prefect_task.bind_worker_to_parent): a killed CLI
-takes its
-workers, and their embedded API servers, along.
+takes its workers, and their embedded API servers, along.
 """
 
 from __future__ import annotations

@@ -4,12 +4,11 @@ Two things grow with every flow command and nothing else ever removes them:
 
 - **Run logs**: `<home>/logs/<command>-<time>-<pid>.log` (for a remote home, in its local cache
   folder), one per flow command (capvector.flows.cli.main). `prune_logs` deletes the oldest ones beyond an
-  age, a
-  count and a total size. It lists only `*.log` files directly in that folder (regular files, links
-  not followed), never the log named in $CAPVECTOR_LOG_FILE (the current run's) and never one written
-  to in the last `ACTIVE_S` seconds (a run still going): nothing else in the home is ever looked at, so
-  the store, the catalogue, the step cache, reports and work folders cannot be touched.
-  `prune_on_start(home)` applies the default limits and never fails: a flow command calls it first.
+  age, a count and a total size. It lists only `*.log` files directly in that folder (regular files, links not
+  followed), never the log named in $CAPVECTOR_LOG_FILE (the current run's) and never one written to in the
+  last `ACTIVE_S` seconds (a run still going): nothing else in the home is ever looked at, so the store, the
+  catalogue, the step cache, reports and work folders cannot be touched. `prune_on_start(home)` applies the
+  default limits and never fails: a flow command calls it first.
 - **Prefect's flow runs**: every flow run, its task runs, their states, logs and UI artifacts stay in
   the database of the Prefect server the run used; with the embedded server that is
   `$PREFECT_HOME/prefect.db` (SQLite; the Makefile sets PREFECT_HOME to `.prefect/`), about 0.35 MB

@@ -15,9 +15,8 @@ process) with `PR_SET_PDEATHSIG`; a normal exit stops it after Prefect's own exi
 flushed their events to it. It runs in a session of its own: Ctrl-C at the terminal (SIGINT to the
 terminal's process group) reaches the CLI and its workers but not the server, so the CLI decides how
 the run ends (capvector.flows.cli.main) instead of finding its API gone. The server's socket is bound at
-reservation
-and handed to uvicorn (`--fd`), so no other process can take the port between choosing it and serving
-on it; it listens only once uvicorn serves, so a client that comes too early (before `wait_for_api`)
+reservation and handed to uvicorn (`--fd`), so no other process can take the port between choosing it and
+serving on it; it listens only once uvicorn serves, so a client that comes too early (before `wait_for_api`)
 is refused at once instead of waiting on a server that may never start.
 
 With `PREFECT_API_URL` already set (a `prefect server start`, docker-compose's server), nothing is

@@ -1,6 +1,5 @@
 """What each `capvector.flows.runtime.task_runners.RunnerConfig` field means, declared once: the model's field
-descriptions
-and the CLI's `--runner`, `--address`, `--workers`, `--cluster-class`, `--cluster-kwargs` help
+descriptions and the CLI's `--runner`, `--address`, `--workers`, `--cluster-class`, `--cluster-kwargs` help
 (capvector.flows.cli.runner_options). No imports: the config model and the CLI both read it."""
 
 DEFAULT_WORKERS = 2

@@ -183,8 +183,8 @@ _checked_for_gpu: set[int] = set()
 @contextlib.contextmanager
 def placement(config: dict[str, Any]) -> Iterator[None]:
     """Around one step's submission (capvector.flows.runtime.step_submission.StepRunner): ask the current flow
-    run's engine for
-    what the step needs. Only a cuda training step on a Dask or Ray runner asks for anything."""
+    run's engine for what the step needs. Only a cuda training step on a Dask or Ray runner asks for
+    anything."""
     if not wants_gpu(config):
         yield
         return

@@ -1,8 +1,7 @@
 """A study's report in Markdown: the headline comparisons with their CIs, the preconditions, the design.
 
 Rendered from the `study` artifact (capvector.tasks.steps.study_analysis), plus the time per training step of
-each
-arm, read from its checkpoints' records (timings are never part of the analysed document).
+each arm, read from its checkpoints' records (timings are never part of the analysed document).
 """
 
 from __future__ import annotations

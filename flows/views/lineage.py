@@ -2,8 +2,7 @@
 
 History is a DAG (θ_pt is a parent of θ_ft, θ_ao and θ_meta), so both views draw every edge among the
 rows: the rows' `links` (capvector.artifacts.catalogue.LineageNode); rows without them fall back to the hop
-each
-row was first reached by. The tree shows each node in full once, under the node it is nearest the root
+each row was first reached by. The tree shows each node in full once, under the node it is nearest the root
 through, and every other edge into it as a one-line reference marked ↑ (shown above) or ↓ (below).
 
 At study size a lineage has hundreds of nodes; `keep_kinds` keeps some kinds (checkpoints and vectors,

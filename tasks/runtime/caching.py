@@ -2,12 +2,11 @@
 
 A step's *content key* is the sha256 of its kind (the task name), the ids (content hashes) of its input
 artifacts, its validated config and its step code hash (capvector.tasks.runtime.step_code): never paths, never
-Python
-object ids. A step that gives its config as a model (training, demo collection, evaluation) is keyed
-on `capvector.core.training.execution.result_config`: the config without the fields that only say where or how
-fast it runs (train.device, num_threads, checkpoint_every, keep_checkpoints; the demos' workers;
-evaluation's batch_size; that module says why each cannot change the result). So a run asked for on
-`cuda:0` is a hit for the same run trained on a CPU; the record says where it ran.
+Python object ids. A step that gives its config as a model (training, demo collection, evaluation) is keyed on
+`capvector.core.training.execution.result_config`: the config without the fields that only say where or how
+fast it runs (train.device, num_threads, checkpoint_every, keep_checkpoints; the demos' workers; evaluation's
+batch_size; that module says why each cannot change the result). So a run asked for on `cuda:0` is a hit for
+the same run trained on a CPU; the record says where it ran.
 
 `cached_step` keeps an index content key -> artifact id in the home directory; a step whose artifact
 is in the store and verifies is not recomputed (also after a killed flow or a deleted Prefect home),

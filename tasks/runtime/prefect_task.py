@@ -1,12 +1,11 @@
 """How pipeline steps run under Prefect: the one task decorator, and the processes a run starts.
 
 **Results.** A step's result is an artifact id, and the content cache (capvector.tasks.runtime.caching) is the
-only
-cache. Prefect's own cache is off and nothing is persisted to its result store: Prefect reads the
-serializer named *inside* a stored result record (pickle by default, even for a record that names
-none), so any record in `$PREFECT_HOME/storage` under a key a step looks up would be unpickled, i.e.
-run as code. A step that its content cache answered returns `Completed(name="Cached")`, which is
-what Prefect's own cache hits look like in the UI.
+only cache. Prefect's own cache is off and nothing is persisted to its result store: Prefect reads the
+serializer named *inside* a stored result record (pickle by default, even for a record that names none), so
+any record in `$PREFECT_HOME/storage` under a key a step looks up would be unpickled, i.e. run as code. A step
+that its content cache answered returns `Completed(name="Cached")`, which is what Prefect's own cache hits
+look like in the UI.
 
 **Processes.** A `capvector run` starts step workers (Prefect's process pool) and one Prefect API
 server (flows/runtime/prefect_server.py) that the CLI and the workers share. None of them may outlive the CLI,

@@ -1,8 +1,7 @@
 """Step: a checkpoint's action loss on held-out demonstrations (the extraction runs' convergence check).
 
 The measure is `capvector.core.training.held_out_loss.held_out_action_loss`. Recorded as a `measurement`
-artifact whose
-parents are the checkpoint and the data.
+artifact whose parents are the checkpoint and the data.
 """
 
 from __future__ import annotations

@@ -74,10 +74,9 @@ def comparison(workspace: Workspace, evaluations: dict[str, str]) -> Report:
 
     This is the report's content, so its id: only what the evaluated checkpoints and their scores
     determine. Scores come from the catalogue (capvector.artifacts.scores), never from a sidecar. Measured
-    speeds
-    and wall times differ from one run, machine or load to the next, so they stay in the checkpoints'
-    records (sidecars) and are read from there when a report is rendered (`timings`,
-    `markdown_table(report, timings)`).
+    speeds and wall times differ from one run, machine or load to the next, so they stay in the checkpoints'
+    records (sidecars) and are read from there when a report is rendered (`timings`, `markdown_table(report,
+    timings)`).
     """
     scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=evaluations.values())}
     per_arm: dict[str, list[ReportRun]] = {}

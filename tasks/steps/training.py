@@ -13,8 +13,7 @@ finished the run used (capvector.core.training.device.run_environment): the reso
 never `auto`), its name, torch's CPU thread count, the torch build and whether CUDA was available. A
 run resumed from another invocation's checkpoint says so in `summary.resumed_from_step`; that
 invocation may have run on another machine (capvector.tasks.runtime.scratch: resume checkpoints are copied to
-a shared
-scratch URL, by default `<home>/scratch` for a remote home, and fetched by the next run).
+a shared scratch URL, by default `<home>/scratch` for a remote home, and fetched by the next run).
 """
 
 from __future__ import annotations
