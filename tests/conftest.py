@@ -25,6 +25,7 @@ import logging  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
@@ -61,6 +62,23 @@ def run_cli(
             f"capvector {' '.join(args)} failed ({result.returncode}):\n{result.stderr[-3000:]}"
         )
     return result
+
+
+def settled_task_states(flow_run_id, timeout: float = 60) -> dict[str, str]:
+    """Task-run name -> state name of a finished flow run, once Prefect has recorded every final state:
+    the API records task-run states from events, after the flow run has returned, so a read right away
+    can still see a cached task as Running (seen on CI)."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
+    deadline = time.monotonic() + timeout
+    of_this_run = FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id]))
+    with get_client(sync_client=True) as client:
+        while True:
+            runs = client.read_task_runs(flow_run_filter=of_this_run)
+            if all(run.state.is_final() for run in runs) or time.monotonic() > deadline:
+                return {run.name: run.state.name for run in runs}
+            time.sleep(0.5)
 
 
 @pytest.fixture(scope="session")

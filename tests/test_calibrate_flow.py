@@ -12,8 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from prefect.client.orchestration import get_client
-from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+from conftest import settled_task_states
 
 from capvector.artifacts.api import ArtifactsAPI
 from capvector.core.simulation.demos import EVAL_SEED_BASE, VALIDATION_SEED_BASE
@@ -172,11 +171,6 @@ def test_calibration_presets_are_checked_before_anything_runs():
 
 
 # ---------------------------------------------------------------------------- a real run
-def _task_states(flow_run_id) -> dict[str, str]:
-    with get_client(sync_client=True) as client:
-        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])))
-    return {run.name: run.state.name for run in runs}
-
 
 def _artifact_count(home: Path) -> int:
     return int(ArtifactsAPI(str(home)).query("SELECT count(*) AS n FROM artifacts")["n"][0])
@@ -233,7 +227,7 @@ def test_a_tiny_calibration_records_every_curve_and_verdict_and_is_then_answered
     before = _artifact_count(home)
     again = calibrate_flow(cfg.model_dump(mode="json"), str(home), return_state=True)
     assert again.result() == result and _artifact_count(home) == before
-    states = _task_states(again.state_details.flow_run_id)
+    states = settled_task_states(again.state_details.flow_run_id)
     assert states and set(states.values()) == {"Cached"}, states
 
     # The command: answered from the cache before any flow or server, the same calibration printed.

@@ -9,9 +9,7 @@ import sys
 import time
 
 import pytest
-from conftest import REPO, run_cli
-from prefect.client.orchestration import get_client
-from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+from conftest import REPO, run_cli, settled_task_states
 
 from capvector.artifacts.api import ArtifactsAPI
 from capvector.artifacts.scores import read_scores
@@ -30,17 +28,12 @@ def _artifact_count(home) -> int:
     return int(ArtifactsAPI(str(home)).query("SELECT count(*) AS n FROM artifacts")["n"][0])
 
 
-def _task_states(flow_run_id) -> dict[str, str]:
-    with get_client(sync_client=True) as client:
-        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])))
-    return {run.name: run.state.name for run in runs}
-
 
 def _run(home, overrides=()):
     config = load_config("smoke", list(overrides)).model_dump(mode="json")
     state = pipeline(config, str(home), return_state=True)
     assert state.is_completed(), state
-    return state.result(), _task_states(state.state_details.flow_run_id)
+    return state.result(), settled_task_states(state.state_details.flow_run_id)
 
 
 def test_cold_run_produces_every_artifact(smoke_home):
