@@ -58,11 +58,11 @@ def build(variant: str, cfg: L1ChunkConfig, gamma: dict[str, torch.Tensor], meta
             for m in adapter_modules(model).values():
                 m.lora_B["default"].weight.normal_(std=1e-3)
     if variant == "full+orth":
-        extra["orth"] = OrthogonalRegularizer(model, gamma, meta, weight=1e-4)
+        extra["orth"] = OrthogonalRegularizer(model, gamma, meta, lambda_absolute=1e-4)
     elif variant == "lora+orth_a":
-        extra["orth"] = OrthogonalRegularizer(model, gamma, weight=1e-4, mode="lora_a")
+        extra["orth"] = OrthogonalRegularizer(model, gamma, lambda_absolute=1e-4, mode="lora_a")
     elif variant == "lora+orth_exact":
-        extra["orth"] = OrthogonalRegularizer(model, gamma, weight=1e-4, mode="lora_exact")
+        extra["orth"] = OrthogonalRegularizer(model, gamma, lambda_absolute=1e-4, mode="lora_exact")
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     return model, opt, extra
 

@@ -122,9 +122,9 @@ def test_switching_policy_type_drops_settings_the_new_type_lacks(monkeypatch):
         ("alpha=-.inf", "alpha"),
         ("adapter_lr=.inf", "adapter_lr"),
         ("sweep.alphas=[0.5, .nan]", "sweep.alphas.1"),
-        ("sweep.lambdas=[.inf]", "sweep.lambdas.0"),
-        ("orthogonal.weight=.nan", "orthogonal.weight"),
-        ("orthogonal.weight=.inf", "orthogonal.weight"),
+        ("sweep.lambdas_absolute=[.inf]", "sweep.lambdas_absolute.0"),
+        ("orthogonal.lambda_absolute=.nan", "orthogonal.lambda_absolute"),
+        ("orthogonal.lambda_relative=.inf", "orthogonal.lambda_relative"),
         ("aux.weight=.inf", "aux.weight"),
         ("downstream.lr=.inf", "downstream.lr"),
         ("pretrain.weight_decay=.inf", "pretrain.weight_decay"),
@@ -151,7 +151,8 @@ def test_step_configs_refuse_nan_and_inf():
     nan, inf = float("nan"), float("inf")
     cases = [
         (MergeConfig, {"alpha": nan}, "alpha"),
-        (OrthogonalSettings, {"weight": inf}, "weight"),
+        (OrthogonalSettings, {"lambda_absolute": inf}, "lambda_absolute"),
+        (OrthogonalSettings, {"lambda_relative": nan}, "lambda_relative"),
         (AuxConfig, {"name": "dynamics", "weight": inf}, "weight"),
         (TrainConfig, {"lr": inf}, "lr"),
         (TrainConfig, {"min_lr_ratio": nan}, "min_lr_ratio"),

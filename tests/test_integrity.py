@@ -141,6 +141,29 @@ def test_merge_force_onto_a_rotted_base_registers_nothing(ws, tmp_path):
     assert not out.exists() and _counts(workspace) == before
 
 
+@pytest.mark.parametrize("which", ["pt", "gamma"])
+def test_the_vector_steps_refuse_a_rotted_input_by_the_hashes_taken_while_reading_it(ws, which):
+    """The merge and mean steps read each input once, hashing it (Workspace.stream), and register
+    nothing when what was read is not the input's id; intact inputs give what `path` reads give."""
+    from capvector.tasks.steps.vectors import run_mean_vector, run_merge
+
+    workspace, ids = ws
+    merged = run_merge(workspace, "θ_meta", {"base": ids["pt"], "vector": ids["gamma"]}, {"alpha": 1.1})
+    record = workspace.api.get(merged)
+    assert {p.id for p in workspace.api.ancestors(merged, max_depth=1)} >= {ids["pt"], ids["gamma"]}
+    want = {k: v + 1.1 * load_file(str(workspace.path(ids["gamma"])))[k]
+            for k, v in load_file(str(workspace.path(ids["pt"]))).items()}  # fmt: skip
+    got = load_file(str(workspace.path(record.id)))
+    assert all(torch.equal(got[k], want[k]) for k in want)
+    rot(workspace.path(ids[which]))
+    before = _counts(workspace)
+    with pytest.raises(CorruptArtifact, match=ids[which]):
+        run_merge(workspace, "θ_meta 2", {"base": ids["pt"], "vector": ids["gamma"]}, {"alpha": 0.5})
+    with pytest.raises(CorruptArtifact, match=ids[which]):
+        run_mean_vector(workspace, "γ̄", {"vector 0": ids["pt"], "vector 1": ids["gamma"]}, {})
+    assert _counts(workspace) == before
+
+
 def test_evaluate_of_a_rotted_checkpoint_registers_nothing(tmp_path, monkeypatch):
     from capvector.core.evaluation.rollouts import EvalConfig
     from capvector.core.policies import L1ChunkConfig, L1ChunkPolicy

@@ -24,7 +24,7 @@ def test_dense_value_and_gradient(tmp_path):
     with torch.no_grad():
         for p in model.parameters():
             p.add_(0.1 * torch.randn_like(p))
-    reg = OrthogonalRegularizer(model, gamma, meta, weight=1e-2, exclude=["2.bias"])
+    reg = OrthogonalRegularizer(model, gamma, meta, lambda_absolute=1e-2, exclude=["2.bias"])
     loss = reg(model)
     params = dict(model.named_parameters())
     used = ["0.weight", "0.bias", "2.weight"]
@@ -39,7 +39,11 @@ def test_dense_value_and_gradient(tmp_path):
     write_checkpoint(tmp_path / "g.safetensors", gamma)
     write_checkpoint(tmp_path / "m.safetensors", meta)
     reg2 = OrthogonalRegularizer(
-        model, tmp_path / "g.safetensors", tmp_path / "m.safetensors", weight=1e-2, exclude=["2.bias"]
+        model,
+        tmp_path / "g.safetensors",
+        tmp_path / "m.safetensors",
+        lambda_absolute=1e-2,
+        exclude=["2.bias"],
     )
     torch.testing.assert_close(reg2(model), want.detach())
 
@@ -68,8 +72,8 @@ def test_lora_exact_and_a_only():
     with torch.no_grad():
         for m in (model[0], model[2]):
             _ab(m)[1].normal_()
-    exact = OrthogonalRegularizer(model, gamma, mode="lora_exact", weight=0.5)
-    a_only = OrthogonalRegularizer(model, gamma, mode="lora_a", weight=0.5)
+    exact = OrthogonalRegularizer(model, gamma, mode="lora_exact", lambda_absolute=0.5)
+    a_only = OrthogonalRegularizer(model, gamma, mode="lora_a", lambda_absolute=0.5)
     want_exact = sum(
         (gamma[f"{i}.weight"] * (2.0 * _ab(m)[1] @ _ab(m)[0])).abs().sum()
         for i, m in ((0, model[0]), (2, model[2]))
@@ -114,7 +118,7 @@ def test_lora_exact_uses_peft_scaling_of_a_peft_made_adapter(tmp_path):
     model = _model()
     model.load_state_dict(state)
     load_adapter(model, tmp_path / "peft")
-    reg = OrthogonalRegularizer(model, gamma, mode="lora_exact", weight=0.1)
+    reg = OrthogonalRegularizer(model, gamma, mode="lora_exact", lambda_absolute=0.1)
     scales = {0: 8 / 4**0.5, 2: 3 / 2**0.5}
     want = sum(
         (gamma[f"{i}.weight"] * (scales[i] * _ab(model[i])[1] @ _ab(model[i])[0])).abs().sum() for i in (0, 2)
@@ -133,12 +137,12 @@ def test_lora_sp_layers():
         m.lora_B.weight.normal_()
     sigma = torch.nn.functional.softplus(m.lora_router.bias.detach())
     want = (gamma["0.weight"] * (2.0 * (m.lora_B.weight * sigma) @ m.lora_A.weight)).abs().sum()
-    exact = OrthogonalRegularizer(model, gamma, mode="lora_exact", weight=0.5)
+    exact = OrthogonalRegularizer(model, gamma, mode="lora_exact", lambda_absolute=0.5)
     loss = exact(model)
     torch.testing.assert_close(loss, 0.5 * want.detach())
     loss.backward()
     assert m.lora_A.weight.grad is not None and m.lora_B.weight.grad is not None
-    a_only = OrthogonalRegularizer(model, gamma, mode="lora_a", weight=0.5)
+    a_only = OrthogonalRegularizer(model, gamma, mode="lora_a", lambda_absolute=0.5)
     torch.testing.assert_close(
         a_only(model), 0.5 * (gamma["0.weight"] @ m.lora_A.weight.T).abs().sum().detach()
     )
@@ -191,7 +195,7 @@ def test_dense_fused_equals_per_tensor_reference():
             p.add_(1e-2 * torch.randn_like(p))
         model[1].bias[:3] = meta["1.bias"][:3]  # Δ exactly 0: sign 0
     model[3].bias.requires_grad_(False)
-    reg = OrthogonalRegularizer(model, gamma, meta, weight=0.3)
+    reg = OrthogonalRegularizer(model, gamma, meta, lambda_absolute=0.3)
     params = dict(model.named_parameters())
     assert reg.names == [n for n in params if n != "3.bias"]
 
@@ -224,12 +228,12 @@ def test_dense_fused_equals_per_tensor_reference():
     assert torch.equal(params["2.weight"].grad, torch.zeros_like(params["2.weight"]))
     # without a zero-γ tensor the value is bit for bit the per-tensor one
     gamma["2.weight"].normal_()
-    reg = OrthogonalRegularizer(model, gamma, meta, weight=0.3)
+    reg = OrthogonalRegularizer(model, gamma, meta, lambda_absolute=0.3)
     assert torch.equal(reg(model).detach(), reference().detach())
     with torch.no_grad():  # evaluation only: no graph, same value
         assert torch.equal(reg(model), reference())
     # a λ changed after construction (tasks/steps/training.py scales it) is the one used, forward and backward
-    reg.weight = 0.05
+    reg.lambda_absolute = 0.05
     for p in model.parameters():
         p.grad = None
     reg(model).backward()

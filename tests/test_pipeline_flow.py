@@ -28,7 +28,6 @@ def _artifact_count(home) -> int:
     return int(ArtifactsAPI(str(home)).query("SELECT count(*) AS n FROM artifacts")["n"][0])
 
 
-
 def _run(home, overrides=()):
     config = load_config("smoke", list(overrides)).model_dump(mode="json")
     state = pipeline(config, str(home), return_state=True)
@@ -187,10 +186,10 @@ def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
 
 def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipeline_steps(smoke_home, tmp_path):
     home, ids = smoke_home
-    config = load_config("smoke", ["sweep.alphas=[0.5, 1.1]", "sweep.lambdas=[1.0e-4]"])
+    config = load_config("smoke", ["sweep.alphas=[0.5, 1.1]", "sweep.lambdas_absolute=[1.0e-4]"])
     result = sweep_flow(config.model_dump(mode="json"), str(home))
     api = ArtifactsAPI(str(home))
-    assert [(row["alpha"], row["lambda"]) for row in result["grid"]] == [(0.5, 1e-4), (1.1, 1e-4)]
+    assert [(row["alpha"], row["lambda_absolute"]) for row in result["grid"]] == [(0.5, 1e-4), (1.1, 1e-4)]
     assert result["best"] == max(result["grid"], key=lambda row: row["validation_success"])
     for row in result["grid"]:
         (evaluation_id,) = row["evaluation_ids"]  # one budget: the sweep judges the final one
@@ -203,7 +202,9 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
     assert result["grid"][0]["checkpoint_ids"][0] not in ids["checkpoints"].values()
     assert api.get(result["sweep"]).kind == "selection"
 
-    one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas=[1.0e-4]"]).model_dump(mode="json")
+    one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas_absolute=[1.0e-4]"]).model_dump(
+        mode="json"
+    )
     one_cell = sweep_flow(one_cell, str(home))
     assert one_cell["grid"] == result["grid"][1:]  # every step cached
     sweeps = [result["sweep"], one_cell["sweep"], result["sweep"]]

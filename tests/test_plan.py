@@ -10,6 +10,7 @@ from capvector.flows.recipe.config import load_config
 from capvector.flows.recipe.plan import pipeline_plan
 from capvector.flows.study.config import load_study
 from capvector.flows.study.plan import gated_study_plan, study_plan, study_steps
+from capvector.tasks.steps.training import OrthogonalSettings
 
 
 def labels(plan) -> list[str]:
@@ -126,27 +127,58 @@ def test_absolute_lambdas_sit_beside_relative_ones_in_the_grid():
     """Issue 41: λ in the paper's absolute form (1e-4) and as a multiple of ‖∇ loss‖/‖γ‖, in one grid."""
     cfg = load_study(
         "study-smoke",
-        ["study.lambda_scales=[0.0, 0.1]", "study.lambdas=[1.0e-4]", "study.aux_weights=[0.25, 0.5, 1.0]"],
+        [
+            "study.lambdas_relative=[0.0, 0.1]",
+            "study.lambdas_absolute=[1.0e-4]",
+            "study.aux_weights=[0.25, 0.5, 1.0]",
+        ],
     )
     plan = study_plan(cfg)
     runs = {p.step: p for p in plan if p.step.startswith("tune capvector")}
     assert sorted(runs) == [
-        "tune capvector α=1.0 λ=0.0",
-        "tune capvector α=1.0 λ=0.1",
         "tune capvector α=1.0 λ_abs=0.0001",
+        "tune capvector α=1.0 λ_rel=0",
+        "tune capvector α=1.0 λ_rel=0.1",
     ]
     orthogonal = {s: p.config["orthogonal"] for s, p in runs.items()}
     absolute = orthogonal["tune capvector α=1.0 λ_abs=0.0001"]
-    assert (absolute["scale"], absolute["weight"]) == ("absolute", 1.0e-4)
-    assert orthogonal["tune capvector α=1.0 λ=0.1"]["scale"] == "action_gradient"
+    assert (absolute["lambda_absolute"], absolute["lambda_relative"]) == (1.0e-4, None)
+    relative = orthogonal["tune capvector α=1.0 λ_rel=0.1"]
+    assert (relative["lambda_absolute"], relative["lambda_relative"]) == (None, 0.1)
     grid = next(p for p in plan if p.step == "select α and λ").config["candidates"]
     assert [c["values"] for c in grid] == [
-        {"alpha": 1.0, "lambda_scale": 0.0},
-        {"alpha": 1.0, "lambda_scale": 0.1},
+        {"alpha": 1.0, "lambda_relative": 0.0},
+        {"alpha": 1.0, "lambda_relative": 0.1},
         {"alpha": 1.0, "lambda_absolute": 1.0e-4},
     ]
     with pytest.raises(ValueError, match="aux_weights has 2 values, the α × λ grid 3 cells"):
-        load_study("study-smoke", ["study.lambdas=[1.0e-4]"])
+        load_study("study-smoke", ["study.lambdas_absolute=[1.0e-4]"])
+
+
+def test_a_study_without_a_lambda_grid_tunes_the_one_lambda_its_preset_sets():
+    """Both study grids empty: the `orthogonal` section's λ, in the form it is set, is the grid's only λ."""
+    for orthogonal, want in (
+        ("orthogonal.lambda_relative=0.3", {"lambda_relative": 0.3}),
+        ("orthogonal.lambda_absolute=0.002", {"lambda_absolute": 0.002}),
+    ):
+        cfg = load_study("study-smoke", ["study.lambdas_relative=[]", "study.aux_weights=[0.25]", orthogonal])
+        grid = next(p for p in study_plan(cfg) if p.step == "select α and λ").config["candidates"]
+        assert [c["values"] for c in grid] == [{"alpha": 1.0, **want}]
+
+
+def test_lambda_takes_one_form_and_the_old_names_say_what_they_became():
+    with pytest.raises(ValueError, match="lambda_absolute and orthogonal.lambda_relative are both set"):
+        OrthogonalSettings.model_validate({"lambda_absolute": 0.1, "lambda_relative": 0.1})
+    with pytest.raises(ValueError, match="orthogonal.weight was renamed: set lambda_absolute"):
+        OrthogonalSettings.model_validate({"weight": 0.1})  # a preset written before the rename
+    with pytest.raises(ValueError, match="'orthogonal.scale' was renamed: set lambda_absolute .* lambda_rel"):
+        load_config("smoke", ["orthogonal.scale=absolute"])
+    with pytest.raises(ValueError, match="'study.lambda_scales' was renamed: .* as lambdas_relative"):
+        load_study("study-smoke", ["study.lambda_scales=[0.1]"])
+    with pytest.raises(ValueError, match="'sweep.lambdas' was renamed: .* as lambdas_absolute"):
+        load_config("smoke", ["sweep.lambdas=[0.1]"])
+    relative = load_config("smoke", ["orthogonal.lambda_relative=0.5"]).downstream_step("capvector", 0)
+    assert relative.orthogonal.lam == {"lambda_relative": 0.5}  # the paper's default gives way
 
 
 def test_a_dose_arm_and_a_tuning_mean_vector_change_only_what_they_name():

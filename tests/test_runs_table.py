@@ -22,13 +22,15 @@ TEST, TEST_B, VALIDATION, VALIDATION_EXT = "a1" * 32, "c3" * 32, "b2" * 32, "d4"
 BASES = {TEST: 100_000, TEST_B: 100_000, VALIDATION: 50_000, VALIDATION_EXT: 50_000}
 
 
-def train_config(seed, steps=30, lr=3e-4, aux=None, orthogonal=None, applied=None, **extra):
+def train_config(
+    seed, steps=30, lr=3e-4, aux=None, orthogonal=None, applied=None, applied_key="lambda_absolute", **extra
+):
     step = {
         "adapter": "full",
         "orthogonal": orthogonal,
         "train": {"seed": seed, "lr": lr, "steps": steps, "aux": aux, "snapshot_steps": []},
     }
-    summary = {"steps": steps} | ({"orthogonal_lambda": applied} if applied is not None else {})
+    summary = {"steps": steps} | ({applied_key: applied} if applied is not None else {})
     return {"train_step": step, "summary": summary, **extra}
 
 
@@ -92,7 +94,7 @@ def home(tmp_path):
         [(data, "data"), (meta, "init"), (gamma, "regularized_by")],
         lr=1e-3,
         snapshots=(10,),
-        orthogonal={"weight": 0.25, "scale": "action_gradient"},
+        orthogonal={"lambda_absolute": None, "lambda_relative": 0.25},
         applied=0.01,
     )
     ids["cap"] = cap
@@ -118,6 +120,19 @@ def rows_json(home, *args):
     return {r["name"]: r for r in json.loads(invoke(home, "runs", "--format", "json", *args).stdout)}
 
 
+def test_runs_recorded_before_lambda_had_two_names_show_it_under_the_new_ones(home):
+    """A run recorded with `orthogonal.weight` + `scale` and a summary's `orthogonal_lambda` (the names
+    until 2026-11) reads as lambda_relative / lambda_absolute."""
+    home, ids = home
+    api = ArtifactsAPI(str(home))
+    old = {"weight": 0.5, "scale": "action_gradient"}
+    data = api.register_json({"d": 2}, "dataset", "demos downstream 2").id
+    train(api, "downstream capvector seed 1", [(data, "data"), (ids["meta"], "init")], seed=1,
+          orthogonal=old, applied=0.02, applied_key="orthogonal_lambda")  # fmt: skip
+    row = rows_json(home)["downstream capvector seed 1"]
+    assert (row["lambda_relative"], row["lambda_absolute"]) == (0.5, 0.02)
+
+
 def test_every_trained_run_once_with_its_settings_and_success_per_budget_and_task(home):
     home, ids = home
     rows = rows_json(home)
@@ -134,12 +149,7 @@ def test_every_trained_run_once_with_its_settings_and_success_per_budget_and_tas
     cap = rows["downstream capvector seed 0"]
     assert cap["id"] == ids["cap"]
     assert (cap["stage"], cap["arm"], cap["draw"], cap["seed"]) == ("downstream", "capvector", 1, 0)
-    assert (cap["alpha"], cap["lambda_weight"], cap["lambda_mode"], cap["lambda_applied"]) == (
-        0.5,
-        0.25,
-        "action_gradient",
-        0.01,
-    )
+    assert (cap["alpha"], cap["lambda_relative"], cap["lambda_absolute"]) == (0.5, 0.25, 0.01)
     assert (cap["lr"], cap["adapter"], cap["steps"]) == (1e-3, "full", 30)
     assert (cap["success@10"], cap["reach@10"], cap["push@10"]) == (0.5, 0.5, 0.5)
     assert (cap["success@30"], cap["reach@30"], cap["push@30"]) == (0.875, 1.0, 0.75)  # test, not validation

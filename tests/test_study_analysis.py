@@ -76,12 +76,12 @@ def _study(ws: Workspace, draws: list[int], seeds: list[int]) -> tuple[dict[str,
         flat_tolerance=0.05,
         non_inferiority_margin=5.0,
         n_boot=300,
-        chosen={"extraction_lr": 1e-3, "aux_weight": 1.0, "alpha": 1.0, "lambda_scale": 0.1},
+        chosen={"extraction_lr": 1e-3, "aux_weight": 1.0, "alpha": 1.0, "lambda_relative": 0.1},
         grids={
             "extraction_lr": [1e-4, 1e-3],
             "aux_weight": [1.0],
             "alpha": [0.5, 1.0, 2.0],
-            "lambda_scale": [0.1],
+            "lambda_relative": [0.1],
         },
     )
     return inputs, design

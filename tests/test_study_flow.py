@@ -82,8 +82,9 @@ def test_every_run_is_tested_on_the_same_goals_at_every_budget(study_home):
     assert set(kept["snapshots"]) == {str(b) for b in config.curve_budgets[:-1]}
     summary = kept["summary"]
     assert summary["gradient_ratio"] > 0
-    chosen = report.design.chosen["lambda_scale"]
-    assert summary["orthogonal_lambda"] == pytest.approx(chosen * summary["gradient_ratio"])
+    chosen = report.design.chosen["lambda_relative"]
+    assert summary["lambda_relative"] == chosen
+    assert summary["lambda_absolute"] == pytest.approx(chosen * summary["gradient_ratio"])
 
 
 def test_the_null_vector_has_gammas_norms_and_is_merged_and_regularized_like_it(study_home):
@@ -198,8 +199,8 @@ def test_study_presets_are_checked_before_anything_runs(tmp_path):
         load_study("study-smoke", ["study.gate=true", "study.arms=[sft, capvector]"])
     with pytest.raises(ValueError, match=r"tuning_seeds \[0\] are also compared"):
         load_study("study-smoke", ["study.tuning_seeds=[1000, 0]"])
-    with pytest.raises(ValueError, match="lambda_scales must be ≥ 0"):
-        load_study("study-smoke", ["study.lambda_scales=[-0.1, 1.0]"])
+    with pytest.raises(ValueError, match="lambdas_relative.0"):
+        load_study("study-smoke", ["study.lambdas_relative=[-0.1, 1.0]"])
     with pytest.raises(ValueError, match="not a study"):
         load_study("smoke")
     proc = run_cli("run", "--preset", "study-smoke", home=tmp_path / "home", check=False)

@@ -132,13 +132,13 @@ class OrthogonalRegularizer(nn.Module):
         model: nn.Module,
         gamma: Tensors,
         meta: Tensors | None = None,
-        weight: float = 1e-4,
+        lambda_absolute: float = 1e-4,
         include: Sequence[str] | None = None,
         exclude: Sequence[str] | None = None,
         mode: Literal["dense", "lora_exact", "lora_a"] = "dense",
     ):
         super().__init__()
-        self.weight = weight
+        self.lambda_absolute = lambda_absolute
         self.mode = mode
         g_names, g_get = _source(gamma)
         if include or exclude:
@@ -215,9 +215,9 @@ class OrthogonalRegularizer(nn.Module):
         """‖∇ loss‖ / ‖γ‖ over the regularized tensors (dense mode), the loss's gradient norm averaged over
         `losses` (scalars computed on a few training batches at the model as training starts).
 
-        λ in relative form: `weight = lambda_scale × this ratio` makes the orthogonal loss's gradient,
-        λ·γ ⊙ sign(θ − θ_meta) of norm λ·‖γ‖, that multiple of the action loss's, whatever the model's
-        scale or γ's norm. The paper's λ (1e-4) is the absolute form: set `weight` to it directly."""
+        λ in relative form: `lambda_absolute = lambda_relative × this ratio` makes the orthogonal loss's
+        gradient, λ·γ ⊙ sign(θ − θ_meta) of norm λ·‖γ‖, that multiple of the action loss's, whatever the
+        model's scale or γ's norm. The paper's λ (1e-4) is the absolute form: set `lambda_absolute` to it."""
         params = self.dense_parameters(model)
         norms = []
         for loss in losses:
@@ -236,7 +236,7 @@ class OrthogonalRegularizer(nn.Module):
             live = [i for i in range(len(self.names)) if i not in self._zero]
             gammas = [getattr(self, f"gamma_{i}") for i in live]
             metas = [getattr(self, f"meta_{i}") for i in live]
-            return _DenseL1.apply(self.weight, gammas, metas, self._zero, *targets)
+            return _DenseL1.apply(self.lambda_absolute, gammas, metas, self._zero, *targets)
         terms = []
         for i, t in enumerate(targets):
             g = getattr(self, f"gamma_{i}")
@@ -245,4 +245,4 @@ class OrthogonalRegularizer(nn.Module):
             else:
                 d = g @ torch.cat(_a_matrices(t)).T
             terms.append(torch.linalg.vector_norm(d, 1, dtype=torch.float32))
-        return torch.stack(terms).sum() * self.weight
+        return torch.stack(terms).sum() * self.lambda_absolute

@@ -411,7 +411,7 @@ def sweep(
 ) -> None:
     """Grid over α and λ for the CapVector arm, picked on validation seeds (never the test seeds)."""
     _boot_server()
-    from capvector.flows.recipe.config import load_config
+    from capvector.flows.recipe.config import lambda_label, load_config
     from capvector.flows.recipe.sweep import sweep_flow, sweep_markdown
 
     config = load_config(preset, overrides)
@@ -425,7 +425,7 @@ def sweep(
     else:
         console.print(sweep_markdown(result))
         console.print(
-            f"best: α={result['best']['alpha']} λ={result['best']['lambda']}  (sweep {result['sweep']})"
+            f"best: α={result['best']['alpha']} {lambda_label(result['best'])}  (sweep {result['sweep']})"
         )
 
 

@@ -15,9 +15,10 @@ from the catalogue alone:
 - draw (replicate): `draw <d>` (`replicate <r>`) in its name, else in the name of its `init` or
   `regularized_by` parent (a study's `downstream capvector seed 0` starts from `draw 1 merge θ_meta`);
   none for runs shared by every draw;
-- seed, lr, steps, adapter, aux, aux_weight and λ from its step config and summary: `lambda_weight`
-  (`orthogonal.weight`), `lambda_mode` (`none` or `action_gradient`) and `lambda_applied` (the weight
-  the run used);
+- seed, lr, steps, adapter, aux, aux_weight and λ from its step config and summary, under
+  OrthogonalSettings' names: `lambda_relative` (set when λ was given as a multiple of ‖∇ action
+  loss‖/‖γ‖) and `lambda_absolute` (the λ the run used, measured from the relative form where that was
+  set); runs recorded before the two names existed are read from their `weight`/`scale` fields;
 - α: the `alpha` of the `vector` edge into its `init` (θ_meta = θ_pt + α·γ);
 - `success@<budget>`: the mean over tasks, and `<task>@<budget>` per task, of the latest evaluation of
   the checkpoint it had at that budget (a snapshot, or the final one at `steps`), under one evaluation
@@ -113,9 +114,15 @@ WITH trained AS (
         ) AS train_s,
         TRY_CAST(t.ts->'train'->>'seed' AS BIGINT) AS seed,
         a.alpha,
-        TRY_CAST(t.ts->'orthogonal'->>'weight' AS DOUBLE) AS lambda_weight,
-        t.ts->'orthogonal'->>'scale' AS lambda_mode,
-        TRY_CAST(t.summary->>'orthogonal_lambda' AS DOUBLE) AS lambda_applied,
+        coalesce(
+            TRY_CAST(t.ts->'orthogonal'->>'lambda_relative' AS DOUBLE),
+            CASE WHEN t.ts->'orthogonal'->>'scale' = 'action_gradient'
+                THEN TRY_CAST(t.ts->'orthogonal'->>'weight' AS DOUBLE) END
+        ) AS lambda_relative,
+        coalesce(
+            TRY_CAST(t.summary->>'lambda_absolute' AS DOUBLE),
+            TRY_CAST(t.summary->>'orthogonal_lambda' AS DOUBLE)
+        ) AS lambda_absolute,
         TRY_CAST(t.ts->'train'->>'lr' AS DOUBLE) AS lr,
         t.ts->>'adapter' AS adapter,
         TRY_CAST(t.ts->'train'->>'steps' AS BIGINT) AS steps,
@@ -133,7 +140,7 @@ WITH trained AS (
     WHERE e.role = 'snapshot'
 )"""
 RUN_COLUMNS = (
-    "id, name, study, stage, arm, draw, replicate, seed, alpha, lambda_weight, lambda_mode, lambda_applied, "
+    "id, name, study, stage, arm, draw, replicate, seed, alpha, lambda_relative, lambda_absolute, "
     "lr, adapter, steps, aux, aux_weight, status, train_s, code_revision"
 )
 SCORED_WITH = """, scores AS (

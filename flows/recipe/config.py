@@ -7,10 +7,10 @@ against it before validation (`capvector.flows.recipe.overrides`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, model_validator
 
 from capvector.core.adapters.lora import LoraConfig
 from capvector.core.adapters.lora_sp import LoraSPConfig
@@ -182,18 +182,54 @@ class EvalSettings(BaseModel):
     )
 
 
-class SweepSettings(BaseModel):
-    """The α × λ grid of the `sweep` flow; choices are made on validation seeds only."""
+class LambdaGrid(BaseModel):
+    """λ values tried in an α × λ grid, in either form (the names of OrthogonalSettings, as lists); both
+    lists empty: the one λ of the config's `orthogonal` section, in the form it is set."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN/inf: refused, naming the field
+    lambdas_absolute: list[NonNegativeFloat] = Field(
+        default_factory=list, description="λ values tried in absolute form (orthogonal.lambda_absolute)"
+    )
+    lambdas_relative: list[NonNegativeFloat] = Field(
+        default_factory=list,
+        description="λ values tried as multiples of ‖∇ action loss‖/‖γ‖ (orthogonal.lambda_relative)",
+    )
+
+    renamed: ClassVar[dict[str, str]] = {
+        "lambdas": "list the λ values as lambdas_absolute",
+        "lambda_scales": "list the λ values as lambdas_relative",
+    }
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        for name in (n for n in cls.renamed if isinstance(data, dict) and n in data):
+            raise ValueError(f"{name} was renamed: {cls.renamed[name]}")
+        return data
+
+    def lambda_cells(self, orthogonal: OrthogonalSettings) -> list[dict[str, float]]:
+        """One {form: value} per λ tried, relative ones first; the section's own λ when both are empty."""
+        cells = [{"lambda_relative": x} for x in self.lambdas_relative]
+        cells += [{"lambda_absolute": x} for x in self.lambdas_absolute]
+        return cells or [orthogonal.lam]
+
+
+def lambda_label(values: dict[str, Any]) -> str:
+    """How the λ of a cell (a dict holding one of the two form names) reads in step labels and reports:
+    `λ_rel=0.1`, `λ_abs=0.0001`, or `λ none` for a cell without the orthogonal loss. Sweeps recorded
+    before the two names existed hold an absolute `lambda`."""
+    for form, short in (("lambda_relative", "rel"), ("lambda_absolute", "abs"), ("lambda", "abs")):
+        if values.get(form) is not None:
+            return f"λ_{short}={values[form]:g}"
+    return "λ none"
+
+
+class SweepSettings(LambdaGrid):
+    """The α × λ grid of the `sweep` flow; choices are made on validation seeds only."""
+
     alphas: list[float] = Field(
         default_factory=lambda: [0.5, 1.1, 1.5],
         description="merge coefficients α tried (θ_meta = θ_pt + α·γ); set the chosen one as `alpha`",
-    )
-    lambdas: list[float] = Field(
-        default_factory=lambda: [1e-5, 1e-4, 1e-3],
-        description="orthogonal weights λ tried with each α (only for an arm with the orthogonal loss); "
-        "set the chosen one as orthogonal.weight",
     )
     arm: ArmName = Field(
         "capvector", description="the arm whose α × λ cells are trained (on seeds[0]) and validated"
@@ -333,8 +369,9 @@ class PipelineConfig(BaseModel):
         return TrainStepConfig(train=train)
 
     def downstream_step(
-        self, arm: str, seed: int, orthogonal_weight: float | None = None, aux_weight: float | None = None
+        self, arm: str, seed: int, lam: dict[str, float] | None = None, aux_weight: float | None = None
     ) -> TrainStepConfig:
+        """Arm `arm`'s run at `seed`; `lam` ({form: value}) replaces the orthogonal section's λ."""
         spec = ARMS[arm]
         aux = self.aux if aux_weight is None else self.aux.model_copy(update={"weight": aux_weight})
         update = {"seed": seed, "aux": aux if spec.aux else None}
@@ -343,8 +380,7 @@ class PipelineConfig(BaseModel):
         train = self.downstream.model_copy(update=update)
         orthogonal = None
         if spec.orthogonal:
-            weight = self.orthogonal.weight if orthogonal_weight is None else orthogonal_weight
-            orthogonal = self.orthogonal.model_copy(update={"weight": weight})
+            orthogonal = self.orthogonal if lam is None else self.orthogonal.with_lambda(lam)
         return TrainStepConfig(
             train=train,
             adapter=spec.adapter,

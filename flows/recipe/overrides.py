@@ -48,6 +48,9 @@ def _check_key(model: type[BaseModel] | None, path: list[str], depth: int) -> No
         raise ConfigKeyError(f"unknown config key {full_key!r}: {prefix!r} has no sub-keys")
     fields = model.model_fields
     part = path[depth]
+    renamed = getattr(model, "renamed", {})  # old key -> what it became, declared on the model
+    if part in renamed:
+        raise ConfigKeyError(f"config key {full_key!r} was renamed: {renamed[part]}")
     if part not in fields:
         hint = difflib.get_close_matches(part, list(fields), n=1)
         suggestion = f" (did you mean {'.'.join(path[:depth] + hint)!r}?)" if hint else ""
@@ -77,6 +80,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[Base
     `...type=` overrides (a polymorphic config's class, e.g. `policy.type=flow`) are applied first, in
     their given order, and every other key after them, so a key is always checked against the type the
     config ends up with: `policy.integration_steps=5 policy.type=flow` means what the other order means.
+    A model's `one_of` fields are alternatives: `orthogonal.lambda_relative=0.1` clears lambda_absolute.
     """
     result: dict[str, Any] = _deep_copy(data)
     parsed = [parse_override(text) for text in overrides]
@@ -98,6 +102,9 @@ def apply_overrides(data: dict[str, Any], overrides: list[str], model: type[Base
                 node[part] = child
             node, current = child, _model_in(field.annotation)
         node[path[-1]] = value
+        one_of = getattr(current, "one_of", ())  # fields of which one is set: setting one clears the rest
+        if path[-1] in one_of:
+            node.update({sibling: None for sibling in one_of if sibling != path[-1]})
         if path[-1] == "type" and current is not None:
             _drop_fields_of_other_type(node, _concrete(current, node), ".".join(path[:-1]))
     return result

@@ -14,7 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from capvector.flows.recipe.config import ARMS  # noqa: E402
+from capvector.flows.recipe.config import ARMS, lambda_label  # noqa: E402
 from capvector.tasks.runtime.workspace import Workspace  # noqa: E402
 from capvector.tasks.steps.reporting import Report, load_report, markdown_table, timings, trained_with  # noqa: E402
 
@@ -119,7 +119,7 @@ def _sweep_section(workspace: Workspace, sweep_id: str, doc: dict[str, Any]) -> 
         f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']}"
         f"{f', lr {lr:g}' if lr is not None else ''})\n\n"
         + sweep_markdown(doc)
-        + f"\nChosen: α = {best['alpha']}, λ = {best['lambda']} (validation success "
+        + f"\nChosen: α = {best['alpha']}, {lambda_label(best)} (validation success "
         f"{100 * best['validation_success']:.1f}%). Test seeds were not used for the choice.\n"
     )
 
@@ -140,7 +140,7 @@ def _learning_rate_section(workspace: Workspace, cells: list[tuple[str, dict[str
     for arm, lr, sid, cell, seed in rows:
         mark = " **(best)**" if cell["validation_success"] == best[arm] else ""
         merged = ARMS[arm].init == "meta"  # α and λ mean nothing to an arm that starts from θ_pt
-        alpha, lam = (cell["alpha"], cell["lambda"]) if merged else ("–", "–")
+        alpha, lam = (cell["alpha"], lambda_label(cell)) if merged else ("–", "–")
         lines.append(
             f"| {arm} | {lr:g} | {alpha} | {lam} | "
             f"{100 * cell['validation_success']:.1f}%{mark} | {seed} | `{sid[:12]}` |"

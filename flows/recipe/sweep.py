@@ -1,4 +1,4 @@
-"""The `sweep` flow: a grid over α (merge) and λ (orthogonal weight), chosen on validation seeds.
+"""The `sweep` flow: a grid over α (merge) and λ (the orthogonal loss's weight), chosen on validation seeds.
 
 Validation goal variations (VALIDATION_SEED_BASE) are disjoint from the test seeds the pipeline
 reports, so the pick never looks at a test score.
@@ -10,7 +10,7 @@ from typing import Any
 
 from prefect import flow
 
-from capvector.flows.recipe.config import ARMS, PipelineConfig
+from capvector.flows.recipe.config import ARMS, PipelineConfig, lambda_label
 from capvector.flows.recipe.flow import step_runner
 from capvector.flows.recipe.plan import submit_arm, submit_vector_stage
 from capvector.flows.runtime.run_records import publish_markdown, recorded_run, run_name
@@ -37,7 +37,7 @@ def sweep_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
 def submit_sweep(steps: StepRunner, cfg: PipelineConfig) -> Any:
     """The vector stage, then per α a merge and per λ a run and its validation; the selection's id."""
     arm, seed = cfg.sweep.arm, cfg.seeds[0]
-    lambdas = cfg.sweep.lambdas if ARMS[arm].orthogonal else [None]
+    lambdas = cfg.sweep.lambda_cells(cfg.orthogonal) if ARMS[arm].orthogonal else [{}]
     stage = submit_vector_stage(steps, cfg)
     validation = cfg.eval_config(validation=True).model_dump(mode="json")
     cells = []
@@ -49,21 +49,18 @@ def submit_sweep(steps: StepRunner, cfg: PipelineConfig) -> Any:
             cfg.merge_config(alpha).model_dump(mode="json"),
         )
         for lam in lambdas:
-            label = f"{arm} α={alpha} λ={lam}"
+            label = f"{arm} α={alpha} {lambda_label(lam)}"
             checkpoint = submit_arm(
-                steps, stage, arm, seed, cfg.downstream_step(arm, seed, lam), label=label, meta=meta
+                steps, stage, arm, seed, cfg.downstream_step(arm, seed, lam or None), label=label, meta=meta
             )
             evaluation = steps.submit(
                 evaluate_task, f"validate {label}", {"checkpoint": checkpoint}, validation
             )
-            cells.append({"alpha": alpha, "lambda": lam, "checkpoint": checkpoint, "evaluation": evaluation})
+            cells.append({"values": {"alpha": alpha, **lam}, "evaluation": evaluation})
     selection = {
         "name": "α and λ",
         "context": {"arm": arm, "seed": seed},
-        "candidates": [
-            {"values": {"alpha": c["alpha"], "lambda": c["lambda"]}, "evaluations": [f"cell {i}"]}
-            for i, c in enumerate(cells)
-        ],
+        "candidates": [{"values": c["values"], "evaluations": [f"cell {i}"]} for i, c in enumerate(cells)],
     }
     evaluations = {f"cell {i}": c["evaluation"] for i, c in enumerate(cells)}
     return resolve(steps.submit(select_task, f"sweep {cfg.name}", evaluations, selection))
@@ -73,5 +70,5 @@ def sweep_markdown(doc: dict[str, Any]) -> str:
     lines = ["| α | λ | validation success |", "|---|---|---|"]
     for r in doc["grid"]:
         mark = " **(best)**" if r == doc["best"] else ""
-        lines.append(f"| {r['alpha']} | {r['lambda']} | {100 * r['validation_success']:.1f}%{mark} |")
+        lines.append(f"| {r['alpha']} | {lambda_label(r)} | {100 * r['validation_success']:.1f}%{mark} |")
     return "\n".join(lines) + "\n"

@@ -3,18 +3,19 @@
 Everything the study decides before it runs is here, so a preset *is* the pre-registration: the grids
 values are chosen from (on validation goals), the γ draws and training seeds, the declared primary
 endpoint (an early downstream budget) and the curve's budgets. What the pipeline takes as given
-(`alpha`, `orthogonal.weight`, `sweep`, `arms`) the study chooses or fixes itself and ignores there.
+(`alpha`, `sweep`, `arms`) the study chooses or fixes itself and ignores there; λ's grid is
+`study.lambdas_relative` + `study.lambdas_absolute`, or, both empty, the `orthogonal` section's one λ.
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, model_validator
+from pydantic import ConfigDict, Field, NonNegativeInt, model_validator
 
 from capvector.core.evaluation.rollouts import EvalConfig
 from capvector.core.simulation.demos import UNIT_SEEDS, DemoConfig
-from capvector.flows.recipe.config import PipelineConfig, load_config
+from capvector.flows.recipe.config import LambdaGrid, PipelineConfig, load_config
 from capvector.tasks.steps.training import TrainStepConfig
 
 StudyArm = Literal[
@@ -35,7 +36,7 @@ ALL_ARMS: tuple[StudyArm, ...] = (  # the default arms; `meta_sft_dose` runs onl
 )
 
 
-class StudySettings(BaseModel):
+class StudySettings(LambdaGrid):
     """The experiment's design, declared before it runs (a preset is its pre-registration).
 
     Args:
@@ -64,11 +65,11 @@ class StudySettings(BaseModel):
             fixes α and tunes λ alone.
         dose_alpha: the merge coefficient of the `meta_sft_dose` arm (θ_pt + dose_alpha·γ, plain SFT):
             beside θ_meta at the chosen α it separates "too little signal" from "not additive".
-        lambda_scales: λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (capvector.tasks.steps.training:
-        orthogonal.scale);
-            0 (θ_meta without the loss) is in the default grid, so the loss has to earn its place.
-        lambdas: λ in the paper's absolute form (orthogonal.scale "absolute"; its best was 1e-4), grid
-            cells beside the relative ones: the α × λ grid is alphas × (lambda_scales + lambdas).
+        lambdas_relative: λ as multiples of ‖∇ action loss‖/‖γ‖ at θ_meta (orthogonal.lambda_relative);
+            put 0 (θ_meta without the loss) in the grid, so the loss has to earn its place.
+        lambdas_absolute: λ in the paper's absolute form (orthogonal.lambda_absolute; its best was
+            1e-4): the α × λ grid is alphas × (lambdas_relative + lambdas_absolute), or alphas × the
+            `orthogonal` section's λ when both are empty.
         aux_weights: the downstream auxiliary arm's grid: as many cells as α × λ, so both arms get the
             same tuning budget.
         budgets: downstream steps at which every run is kept and tested besides the final one. The
@@ -92,8 +93,6 @@ class StudySettings(BaseModel):
     flat_tolerance: float = Field(0.05, gt=0, lt=1)
     non_inferiority_margin: float = Field(5.0, gt=0)
     alphas: list[float] = Field(default_factory=lambda: [0.5, 1.0, 1.5, 2.0], min_length=1)
-    lambda_scales: list[float] = Field(default_factory=lambda: [0.0, 0.1, 1.0])
-    lambdas: list[float] = Field(default_factory=lambda: [1.0e-4])
     dose_alpha: float | None = Field(None, gt=0)
     aux_weights: list[float] = Field(min_length=1)
     budgets: list[int] = Field(min_length=1)
@@ -103,19 +102,15 @@ class StudySettings(BaseModel):
 
     @model_validator(mode="after")
     def _design(self) -> StudySettings:
-        cells = len(self.alphas) * (len(self.lambda_scales) + len(self.lambdas))
-        if not self.lambda_scales and not self.lambdas:
-            raise ValueError("study.lambda_scales and study.lambdas are both empty: the grid needs a λ")
+        cells = len(self.alphas) * max(1, len(self.lambdas_relative) + len(self.lambdas_absolute))
         if len(self.aux_weights) != cells:
             raise ValueError(
                 f"study.aux_weights has {len(self.aux_weights)} values, the α × λ grid {cells} cells: "
                 "the auxiliary arm is tuned on the same budget as CapVector"
             )
-        grids = ("draws", "tuning_seeds", "tuning_vector_draws", "alphas", "lambda_scales", "lambdas")
-        grids += ("aux_weights",)
-        grids += ("extraction_lrs",)
-        grids += ("extraction_aux_weights",)
-        for name in (*grids, "budgets"):
+        grids = ("draws", "tuning_seeds", "tuning_vector_draws", "alphas", "lambdas_relative")
+        grids += ("lambdas_absolute", "aux_weights", "extraction_lrs", "extraction_aux_weights", "budgets")
+        for name in grids:
             values = getattr(self, name)
             if len(set(values)) != len(values):
                 raise ValueError(f"study.{name} has repeated values: {values}")
@@ -123,9 +118,6 @@ class StudySettings(BaseModel):
         bad = [name for name in positive if any(x <= 0 for x in getattr(self, name))]
         if bad:
             raise ValueError(f"study.{', study.'.join(bad)} must be positive")
-        for name in ("lambda_scales", "lambdas"):  # 0 belongs in the grid: θ_meta fine-tuned without it
-            if any(x < 0 for x in getattr(self, name)):
-                raise ValueError(f"study.{name} must be ≥ 0, not {getattr(self, name)}")
         if len(self.draws) % self.draws_per_replicate:
             raise ValueError(
                 f"study.draws ({len(self.draws)}) must split into replicates of study.draws_per_replicate "
@@ -227,22 +219,13 @@ class StudyConfig(PipelineConfig):
         self,
         arm: str,
         seed: int,
-        lambda_scale: float | None = None,
+        lam: dict[str, float] | None = None,
         aux_weight: float | None = None,
-        lambda_absolute: float | None = None,
     ) -> TrainStepConfig:
-        """A downstream run with the curve's snapshots; λ scaled to the action loss's gradient
-        (`lambda_scale`), or absolute as the paper's (`lambda_absolute`)."""
-        if lambda_scale is not None and lambda_absolute is not None:
-            raise ValueError("a run takes λ in one form: lambda_scale or lambda_absolute")
-        weight = lambda_scale if lambda_absolute is None else lambda_absolute
-        step = self.downstream_step(arm, seed, weight, aux_weight)
+        """A downstream run with the curve's snapshots; `lam` ({form: value}) as in `downstream_step`."""
+        step = self.downstream_step(arm, seed, lam, aux_weight)
         train = step.train.model_copy(update={"snapshot_steps": self.curve_budgets[:-1]})
-        update = {"train": train}
-        if step.orthogonal is not None:
-            scale = "absolute" if lambda_absolute is not None else "action_gradient"
-            update["orthogonal"] = step.orthogonal.model_copy(update={"scale": scale})
-        return step.model_copy(update=update)
+        return step.model_copy(update={"train": train})
 
     def extraction_validation(self) -> EvalConfig:
         """D_ext's validation goals: the extraction lr and preconditions (b), (d) are judged there."""

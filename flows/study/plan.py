@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from capvector.flows.recipe.config import ARMS
+from capvector.flows.recipe.config import ARMS, lambda_label
 from capvector.flows.recipe.plan import submit_arm
 from capvector.flows.runtime.step_submission import CacheProbe, PlannedStep, PlanRecorder, StepRunner, resolve
 from capvector.flows.study.config import GATE_ARMS, SHARED_ARMS, StudyConfig
@@ -39,7 +39,7 @@ from capvector.tasks.steps.evaluation import evaluate_task
 from capvector.tasks.steps.held_out_loss import held_out_loss_task
 from capvector.tasks.steps.selection import chosen, select_task
 from capvector.tasks.steps.study_analysis import analyse_study_task, gate_passed
-from capvector.tasks.steps.training import snapshots_of, train_task
+from capvector.tasks.steps.training import LAMBDA_FORMS, snapshots_of, train_task
 from capvector.tasks.steps.vectors import extract_task, mean_vector_task, merge_task, null_vector_task
 from capvector.tasks.study_inputs import (
     CapabilityVector,
@@ -470,10 +470,8 @@ def _tune_alpha_lambda(study: _Study, base: dict[str, Any], extraction: dict[str
         else:
             pairs = {t: {"base": base["pretrained"], "vector": vectors[t]} for t in tunes}
             merged = {t: submit(merge_task, _seeded(label, t, tunes), pairs[t], merge) for t in tunes}
-        lambdas = [("lambda_scale", x, f"λ={x}") for x in s.lambda_scales]
-        lambdas += [("lambda_absolute", x, f"λ_abs={x:g}") for x in s.lambdas]
-        for form, value, name in lambdas:
-            what = f"capvector α={alpha} {name}"
+        for lam in s.lambda_cells(cfg.orthogonal):
+            what = f"capvector α={alpha} {lambda_label(lam)}"
             evaluations = []
             for t in tunes:
                 run = submit_arm(
@@ -481,12 +479,12 @@ def _tune_alpha_lambda(study: _Study, base: dict[str, Any], extraction: dict[str
                     {**base, "vector": vectors[t]},
                     "capvector",
                     t,
-                    cfg.study_downstream("capvector", t, **{form: value}),
+                    cfg.study_downstream("capvector", t, lam),
                     label=_seeded(f"tune {what}", t, tunes),
                     meta=merged[t],
                 )
                 evaluations += study.validate_curve(run, _seeded(what, t, tunes))
-            grid_cells.append(({"alpha": alpha, form: value}, evaluations))
+            grid_cells.append(({"alpha": alpha, **lam}, evaluations))
     return study.select("α and λ", grid_cells, {"seeds": tunes, "endpoint": cfg.curve_budgets})
 
 
@@ -519,14 +517,14 @@ def _capvector_arms(
     """Each unit's θ_meta, θ_null (and dose), then the arms that start from them; the arms run."""
     cfg = study.cfg
     rest = [arm for arm in AFTER_GATE_ARMS if arm in cfg.study.arms]
-    lam = {k: chosen_values[k] for k in ("lambda_scale", "lambda_absolute") if k in chosen_values}
+    lam = {k: chosen_values[k] for k in LAMBDA_FORMS if k in chosen_values}
     for d, stage in units.items():
         _merges(study, d, stage, base, selection, chosen_values["alpha"])
         for arm in rest:
             init = ARMS[arm].init
             study.test_start(stage[init], arm, d, f"{study.unit} {d} {START_NAMES[init]}")
             for seed in cfg.seeds:
-                step = cfg.study_downstream(arm, seed, **(lam if ARMS[arm].orthogonal else {}))
+                step = cfg.study_downstream(arm, seed, lam if ARMS[arm].orthogonal else None)
                 runs[arm, d, seed] = study.train_draw_arm(stage, arm, d, seed, step, selection)
     return rest
 
@@ -562,7 +560,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
 
     selection = _tune_alpha_lambda(study, base, extraction)
     best = study.chosen(selection)
-    chosen_values |= {k: best[k] for k in ("alpha", "lambda_scale", "lambda_absolute") if k in best}
+    chosen_values |= {k: best[k] for k in ("alpha", *LAMBDA_FORMS) if k in best}
     if s.dose_alpha is not None:
         chosen_values["dose_alpha"] = s.dose_alpha
     rest = _capvector_arms(study, units, base, selection, chosen_values, runs)
@@ -597,8 +595,8 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
             "extraction_aux_weight": list(s.extraction_aux_weights),
             "aux_weight": list(s.aux_weights),
             "alpha": list(s.alphas),
-            "lambda_scale": list(s.lambda_scales),
-            "lambda_absolute": list(s.lambdas),
+            "lambda_relative": list(s.lambdas_relative),
+            "lambda_absolute": list(s.lambdas_absolute),
         },
     }
 

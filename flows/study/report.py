@@ -319,7 +319,7 @@ def _chosen(chosen: dict[str, float]) -> str:
     """The chosen settings, saying which form λ took (scaled to the gradient, or the paper's absolute)."""
     return "; ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in chosen.items()) + (
         " (λ as a multiple of ‖∇ action loss‖/‖γ‖)."
-        if "lambda_scale" in chosen
+        if "lambda_relative" in chosen or "lambda_scale" in chosen  # lambda_scale: its name until 2026-11
         else " (λ absolute, the paper's form)."
         if "lambda_absolute" in chosen
         else "."

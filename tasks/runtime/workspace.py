@@ -20,6 +20,22 @@ from capvector.tasks.runtime.scratch import CheckpointMirror, scratch_url
 TRACKED_LIBRARIES = ("capvector", "torch", "mujoco", "metaworld", "numpy", "safetensors", "prefect")
 
 
+class StreamedInputs:
+    """Input artifacts read once and hashed as they are read, as the vector commands read theirs
+    (capvector.tasks.vector_commands): `paths` to compute from with `hashes` collecting sha256s, then
+    `verified()` checks every input against its id (CorruptArtifact naming it) and gives the
+    `parent_hashes` of the registration, which then hashes no parent again."""
+
+    def __init__(self, api: ArtifactsAPI, ids: dict[str, str]):
+        self._store = api.store
+        self._opened = {role: self._store.stream_path(i) for role, i in ids.items()}
+        self.paths = {role: path for role, (path, _) in self._opened.items()}
+        self.hashes: dict[Path, str] = {}
+
+    def verified(self) -> dict[str, dict[str, str]]:
+        return {rec.id: self._store.check_read(rec, path, self.hashes) for path, rec in self._opened.values()}
+
+
 class Workspace:
     """Paths and the artifacts API for one home (`CAPVECTOR_HOME` or `--home`)."""
 
@@ -50,6 +66,11 @@ class Workspace:
         `ArtifactStore.stream_path`/`check_read`.)
         """
         return self.api.path(artifact_id, verify=True)
+
+    def stream(self, ids: dict[str, str]) -> StreamedInputs:
+        """Inputs by role, to be read once while hashed and checked before registering (StreamedInputs);
+        `path` checks first and is read again: for inputs read by code that cannot hash as it reads."""
+        return StreamedInputs(self.api, ids)
 
     def run_dir(self, key: str) -> Path:
         """A step's working folder, kept across a crash so training can resume from its checkpoints

@@ -21,7 +21,7 @@ from __future__ import annotations
 import functools
 import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -42,22 +42,35 @@ from capvector.tasks.runtime.workspace import Workspace, provenance
 CALIBRATION_BATCHES = 8
 
 
+PAPER_LAMBDA = 1e-4  # the paper's λ, tuned on a 7B model where Σ|γ ⊙ Δ| is far larger than here
+LAMBDA_FORMS = ("lambda_absolute", "lambda_relative")
+
+
 class OrthogonalSettings(BaseModel):
-    """λ·Σ|γ ⊙ Δ'|; `mode` for adapters: `lora_exact` (B·A materialised) or `lora_a` (A only)."""
+    """λ·Σ|γ ⊙ Δ'|, with λ in one of two forms, each with its own name: `lambda_absolute` (λ itself, the
+    paper's form) or `lambda_relative` (λ as a multiple of ‖∇ action loss‖/‖γ‖ at θ_meta, which carries
+    across models). `lora_mode` for adapters: `lora_exact` (B·A materialised) or `lora_a` (A only)."""
 
     model_config = ConfigDict(extra="forbid")
-    weight: float = Field(
-        1e-4,
-        allow_inf_nan=False,
-        description="λ (or λ's multiple, see scale); larger: downstream updates kept further off γ, 0: "
-        "no penalty. Chosen by `sweep` (sweep.lambdas); a study uses study.lambda_scales",
+    one_of: ClassVar[tuple[str, ...]] = LAMBDA_FORMS  # an override of one clears the other
+    renamed: ClassVar[dict[str, str]] = dict.fromkeys(
+        ("weight", "scale"),
+        "set lambda_absolute (λ itself) or lambda_relative (λ as a multiple of ‖∇ action loss‖/‖γ‖)",
     )
-    scale: Literal["absolute", "action_gradient"] = Field(
-        "absolute",
-        description="`absolute`: λ = weight (the paper's 1e-4 was tuned on a 7B model, where Σ|γ·Δ| is far "
-        "larger); `action_gradient`: λ = weight × ‖∇ action loss‖ / ‖γ‖ at θ_meta before training, so "
-        "weight 1 means a gradient as large as the action loss's on any model (full fine-tuning only; "
-        "a study always uses it)",
+    lambda_absolute: float | None = Field(
+        None,
+        ge=0,
+        allow_inf_nan=False,
+        description=f"λ itself (the paper's form; null with lambda_relative set, else {PAPER_LAMBDA:g}, the "
+        "paper's best on a 7B model); larger: downstream updates kept further off γ, 0: no penalty",
+    )
+    lambda_relative: float | None = Field(
+        None,
+        ge=0,
+        allow_inf_nan=False,
+        description="λ as a multiple of ‖∇ action loss‖/‖γ‖ measured at θ_meta before training: 1 gives "
+        "the penalty a gradient as large as the action loss's on any model (full fine-tuning only); "
+        "set this or lambda_absolute, not both",
     )
     lora_mode: Literal["lora_exact", "lora_a"] = Field(
         "lora_exact",
@@ -71,6 +84,33 @@ class OrthogonalSettings(BaseModel):
     exclude: list[str] | None = Field(
         None, description="γ tensors left out of the penalty (module_patterns syntax); null: none"
     )
+
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_form_of_lambda(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        old = sorted(set(cls.renamed) & set(data))
+        if old:
+            raise ValueError(f"orthogonal.{old[0]} was renamed: {cls.renamed[old[0]]}")
+        given = [f for f in LAMBDA_FORMS if data.get(f) is not None]
+        if len(given) == 2:
+            raise ValueError(
+                "orthogonal.lambda_absolute and orthogonal.lambda_relative are both set: λ takes one form"
+            )
+        if not given:
+            data = {**data, "lambda_absolute": PAPER_LAMBDA}
+        return data
+
+    @property
+    def lam(self) -> dict[str, float]:
+        """The one λ set, under its form's name, e.g. {"lambda_relative": 0.1}."""
+        return {f: getattr(self, f) for f in LAMBDA_FORMS if getattr(self, f) is not None}
+
+    def with_lambda(self, lam: dict[str, float]) -> OrthogonalSettings:
+        """These settings with λ replaced by `lam` (one form, as `lam` gives it)."""
+        return OrthogonalSettings.model_validate({**self.model_dump(exclude=set(LAMBDA_FORMS)), **lam})
 
 
 class TrainStepConfig(BaseModel):
@@ -111,13 +151,13 @@ def _orthogonal(
         raise ValueError("the orthogonal regularizer needs inputs `vector` (γ) and `init` (θ_meta)")
     settings = cfg.orthogonal
     mode = ADAPTERS[cfg.adapter].orthogonal_mode(settings.lora_mode)
-    if settings.scale == "action_gradient" and mode != "dense":
-        raise ValueError("orthogonal.scale 'action_gradient' needs full fine-tuning (adapter 'full')")
+    if settings.lambda_relative is not None and mode != "dense":
+        raise ValueError("orthogonal.lambda_relative needs full fine-tuning (adapter 'full')")
     return OrthogonalRegularizer(
         model,
         workspace.path(inputs["vector"]),
         workspace.path(inputs["init"]) if mode == "dense" else None,
-        weight=settings.weight,
+        lambda_absolute=settings.lambda_absolute or 0.0,  # a relative λ is set once measured
         include=settings.include,
         exclude=settings.exclude,
         mode=mode,
@@ -190,12 +230,12 @@ def _orthogonal_loss(
     regularizer = _orthogonal(workspace, model, cfg, inputs)
     if regularizer is None:
         return {}, {}
-    lam = {}
-    if cfg.orthogonal.scale == "action_gradient":
-        scale = action_gradient_scale(model, dataset, regularizer, cfg.train.seed, cfg.train.batch_size)
-        regularizer.weight = cfg.orthogonal.weight * scale
-        lam["gradient_ratio"] = scale  # ‖∇ action loss‖/‖γ‖ at the start: λ = weight × this
-    lam["orthogonal_lambda"] = regularizer.weight
+    lam = cfg.orthogonal.lam
+    if cfg.orthogonal.lambda_relative is not None:
+        ratio = action_gradient_scale(model, dataset, regularizer, cfg.train.seed, cfg.train.batch_size)
+        regularizer.lambda_absolute = cfg.orthogonal.lambda_relative * ratio
+        lam["gradient_ratio"] = ratio  # ‖∇ action loss‖/‖γ‖ at the start: λ = lambda_relative × this
+    lam["lambda_absolute"] = regularizer.lambda_absolute
     return {"orthogonal": regularizer}, lam
 
 

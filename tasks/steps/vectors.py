@@ -1,5 +1,8 @@
 """Steps: extract a capability vector (with its statistics), average several (γ̄ of K draws), and merge
-vectors into a base checkpoint."""
+vectors into a base checkpoint.
+
+Inputs are read once and hashed as they are read, then checked against their ids before anything is
+registered (Workspace.stream): the integrity the `capvector vector` commands give their inputs."""
 
 from __future__ import annotations
 
@@ -56,27 +59,29 @@ def stat_rows(stats: list[VectorStat], group_depth: int = 2) -> list[dict[str, A
 def _extract(call: StepCall) -> str:
     """γ = minuend − subtrahend; with a `base` input, statistics against θ_pt and θ_ft − θ_pt."""
     workspace, inputs, flt = call.workspace, call.inputs, call.config
-    minuend, subtrahend = workspace.path(inputs["minuend"]), workspace.path(inputs["subtrahend"])
-    base = workspace.path(inputs["base"]) if "base" in inputs else None
+    roles = [r for r in ("minuend", "subtrahend", "base") if r in inputs]
+    reads = workspace.stream({r: inputs[r] for r in roles})
+    minuend, subtrahend, base = (reads.paths.get(r) for r in ("minuend", "subtrahend", "base"))
     meta = provenance()
     with workspace.scratch() as tmp:
         out = vector_ops.extract(
-            minuend, subtrahend, tmp / "vector.safetensors", flt.include, flt.exclude, base=base
-        )
-        parents = [(inputs["minuend"], "minuend"), (inputs["subtrahend"], "subtrahend")]
-        if "base" in inputs:
-            parents.append((inputs["base"], "base"))
+            minuend, subtrahend, tmp / "vector.safetensors", flt.include, flt.exclude, base=base,
+            hashes=reads.hashes,
+        )  # fmt: skip
         record = workspace.api.register_file(
             out,
             kind="vector",
             name=call.step,
             config={"formula": "minuend - subtrahend", **flt.model_dump(), "cache_key": call.key},
-            parents=parents,
+            parents=[(inputs[r], r) for r in roles],
+            parent_hashes=reads.verified(),
             **meta,
         )
         reference = None
         if base is not None:
-            reference = vector_ops.extract(subtrahend, base, tmp / "task_vector.safetensors", base=base)
+            reference = vector_ops.extract(
+                subtrahend, base, tmp / "task_vector.safetensors", base=base, hashes=reads.hashes
+            )
         stats = vector_ops.stats(out, base=base, reference_vector=reference)
     workspace.api.register_vector_stats(record.id, stat_rows(stats), **meta)
     return record.id
@@ -85,14 +90,15 @@ def _extract(call: StepCall) -> str:
 def _merge(call: StepCall) -> str:
     """θ = base + α·vector; the merged file keeps base's metadata, so it loads as the same policy type."""
     workspace, inputs, cfg = call.workspace, call.inputs, call.config
-    base = workspace.path(inputs["base"])
+    reads = workspace.stream({r: inputs[r] for r in ("base", "vector")})
     with workspace.scratch() as tmp:
         merged = vector_ops.merge(
-            base,
-            [(workspace.path(inputs["vector"]), cfg.alpha)],
+            reads.paths["base"],
+            [(reads.paths["vector"], cfg.alpha)],
             tmp / "model.safetensors",
             cfg.include,
             cfg.exclude,
+            hashes=reads.hashes,
         )
         formula = {"formula": "base + alpha * vector", "alpha": cfg.alpha}
         record = workspace.api.register_file(
@@ -105,6 +111,7 @@ def _merge(call: StepCall) -> str:
                 (inputs["vector"], "vector", {"alpha": cfg.alpha}),
                 *selected_by(inputs),
             ],
+            parent_hashes=reads.verified(),
             **provenance(),
         )
     return record.id
@@ -128,14 +135,17 @@ def _mean_vector(call: StepCall) -> str:
     signal fraction ρ per draw, the mean of K points at the signal with cos √(Kρ / (Kρ + 1 − ρ)))."""
     workspace, inputs = call.workspace, call.inputs
     roles = _vector_roles(inputs)
+    reads = workspace.stream({r: inputs[r] for r in roles})
     with workspace.scratch() as tmp:
-        out = vector_ops.mean([workspace.path(inputs[r]) for r in roles], tmp / "vector.safetensors")
+        paths = [reads.paths[r] for r in roles]
+        out = vector_ops.mean(paths, tmp / "vector.safetensors", hashes=reads.hashes)
         record = workspace.api.register_file(
             out,
             kind="vector",
             name=call.step,
             config={"formula": "mean of vectors", "count": len(roles), "cache_key": call.key},
             parents=[(inputs[r], "vector", {"index": i}) for i, r in enumerate(roles)],
+            parent_hashes=reads.verified(),
             **provenance(),
         )
     return record.id
@@ -149,8 +159,11 @@ class NullVectorConfig(BaseModel):
 def _null_vector(call: StepCall) -> str:
     """A random vector with the per-tensor norms of input `vector` (the null-vector control)."""
     workspace, inputs, cfg = call.workspace, call.inputs, call.config
+    reads = workspace.stream({"vector": inputs["vector"]})
     with workspace.scratch() as tmp:
-        out = vector_ops.null_vector(workspace.path(inputs["vector"]), tmp / "vector.safetensors", cfg.seed)
+        out = vector_ops.null_vector(
+            reads.paths["vector"], tmp / "vector.safetensors", cfg.seed, hashes=reads.hashes
+        )
         record = workspace.api.register_file(
             out,
             kind="vector",
@@ -161,6 +174,7 @@ def _null_vector(call: StepCall) -> str:
                 "cache_key": call.key,
             },
             parents=[(inputs["vector"], "norms_from")],
+            parent_hashes=reads.verified(),
             **provenance(),
         )
     return record.id
