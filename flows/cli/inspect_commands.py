@@ -1,4 +1,4 @@
-"""The read-only commands (artifacts, lineage, scores, compare, report, sql) and `import`: what a
+"""The read-only commands (artifacts, lineage, scores, compare, report, studies, sql) and `import`: what a
 researcher asks of the catalogue. None imports torch, pandas, Prefect or Meta-World to answer."""
 
 from __future__ import annotations
@@ -274,6 +274,40 @@ def report(
         print_json({"path": str(path), "kind": "report", "id": rid})
     else:
         console.print(f"wrote {path}")
+
+
+def studies(
+    refs: Annotated[
+        list[str] | None,
+        typer.Argument(help="two studies to compare: artifact ids (a prefix is enough) or study JSON files"),
+    ] = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """The studies of this home, one row each (stage, design, gate, headline difference); with two, side by
+    side: design, preconditions and every comparison at the primary endpoint. A study of another home:
+    `capvector --home OTHER artifacts get ID -o study.json`, then pass the file."""
+    from capvector.flows.views.studies import compare_studies, list_studies, load_study_doc
+
+    ws = workspace(home)
+    if not refs:
+        rows = list_studies(ws)
+        if as_json:
+            print_json([r.model_dump() for r in rows])
+            return
+        columns = ("id", "name", "stage", "created_at", "code_version", "draws", "seeds", "tasks",
+                   "goals_per_task", "gate", "headline")  # fmt: skip
+        typer.echo(text_table(columns, [[str(getattr(r, c)) for c in columns] for r in rows]))
+        return
+    if len(refs) != 2:
+        raise typer.BadParameter(f"give two studies to compare, or none to list them (got {len(refs)})")
+    (label_a, a), (label_b, b) = (load_study_doc(ws, ref) for ref in refs)
+    sections = compare_studies(a, b)
+    if as_json:
+        print_json({"studies": [label_a, label_b], **{k: [list(r) for r in v] for k, v in sections.items()}})
+        return
+    for title, rows in sections.items():
+        typer.echo(f"\n{title}\n" + text_table(("", label_a[:12], label_b[:12]), rows))
 
 
 def sql(query: str, home: HomeOption = None, as_json: JsonOption = False) -> None:

@@ -46,7 +46,7 @@ app.command("export")(export)
 for name in ("run", "evaluate", "reevaluate", "study", "calibrate", "sweep", "schedule"):
     app.command()(getattr(experiment_commands, name))
 for command in (inspect_commands.lineage, inspect_commands.scores, inspect_commands.compare,
-                inspect_commands.report, inspect_commands.sql):  # fmt: skip
+                inspect_commands.report, inspect_commands.studies, inspect_commands.sql):  # fmt: skip
     app.command()(command)
 app.command("import")(inspect_commands.import_checkpoint)
 
