@@ -216,4 +216,4 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
     cell = one_cell["grid"][0]
     success = f"{100 * cell['validation_success']:.1f}% **(best)**"
     lr = f"{config.downstream.lr:g}"
-    assert f"| capvector | {lr} | 1.1 | 0.0001 | {success} | 0 | `{one_cell['sweep'][:12]}` |" in text
+    assert f"| capvector | {lr} | 1.1 | λ_abs=0.0001 | {success} | 0 | `{one_cell['sweep'][:12]}` |" in text

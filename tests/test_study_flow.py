@@ -128,7 +128,7 @@ def test_the_study_report_has_figures_and_no_interval_outside_its_range(study_ho
     assert "wrote" in proc.stdout
     text = out.read_text()
     figures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
-    assert len(figures) >= 2
+    assert len(figures) >= 2 and "smoke_losses.png" in figures  # training loss per arm, from the records
     for name in figures:
         assert (out.parent / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for low, high in re.findall(r"\[([+-]?\d+\.\d), ([+-]?\d+\.\d)\]", text):

@@ -1,17 +1,19 @@
 """A study's report as files: Markdown and its PNG figures, written side by side.
 
-Four figures, drawn from the `study` artifact alone: success vs
+Four figures drawn from the `study` artifact alone: success vs
 downstream steps per arm (budget 0 is the checkpoint a run starts from) with its 95 % band drawn light,
 each run's own mean as a point and n in the legend, the y range fitted to what is drawn so a wide band
 at a small design does not flatten the rest; a forest plot of the paired differences at the primary
 endpoint with each comparison's MDD marked; the endpoint per task and arm with a 95 % t interval over
 runs and n; and γ (precondition (e)'s values): its norm against the seed-noise reference and the
-signal's norm, and the cosines between draws, with θ_ft − θ_pt and between replicates.
+signal's norm, and the cosines between draws, with θ_ft − θ_pt and between replicates. A fifth reads
+the final checkpoints' records: each arm's training action-loss curves (median and range over runs).
 """
 
 from __future__ import annotations
 
 import math
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -294,6 +296,46 @@ def plot_gamma(report: StudyReport, path: Path) -> Path | None:
     return path
 
 
+def _loss_curves(workspace: Workspace, report: StudyReport) -> dict[str, list[list[dict[str, Any]]]]:
+    """Arm -> each final checkpoint's logged training curve (rows with `step` and `loss`)."""
+    out = {}
+    for arm, ids in report.final_checkpoints.items():
+        curves = [(workspace.api.get(i).config or {}).get("curve") or [] for i in ids]
+        out[arm] = [c for c in curves if c]
+    return {arm: curves for arm, curves in out.items() if curves}
+
+
+def plot_losses(workspace: Workspace, report: StudyReport, path: Path) -> Path | None:
+    """Training action loss vs downstream step per arm: the median over its runs (line) and the range
+    between the runs' lowest and highest (band), on a log scale; n runs in the legend. The action term
+    alone (the curve's `action` column), so arms with extra terms (the auxiliary objective, the
+    orthogonal penalty) are read on the same scale."""
+    curves = _loss_curves(workspace, report)
+    if not curves:
+        return None
+    fig, ax = plt.subplots(figsize=(7.2, 4.0))
+    for arm, runs in curves.items():
+        steps = sorted(set.intersection(*[{row["step"] for row in run} for run in runs]))
+        by_step = [
+            [next(r.get("action", r["loss"]) for r in run if r["step"] == s) for run in runs] for s in steps
+        ]
+        colour = COLOURS.get(arm)
+        ax.fill_between(steps, [min(v) for v in by_step], [max(v) for v in by_step], color=colour, alpha=0.15)
+        label = f"{NAMES.get(arm, arm)} (n = {len(runs)})"
+        ax.plot(steps, [statistics.median(v) for v in by_step], color=colour, lw=1.6, label=label)
+    ax.set_yscale("log")
+    ax.set_xlabel("downstream training step")
+    ax.set_ylabel("training action loss (log scale)")
+    ax.set_title(
+        "Training action loss per arm: median over runs (line), lowest to highest run (band)", fontsize=9
+    )
+    ax.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)
+    ax.grid(alpha=0.3, which="both")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
 def latest_study_id(workspace: Workspace) -> str | None:
     _, rows = workspace.api.query_rows(
         "SELECT id FROM artifacts WHERE kind = 'study' ORDER BY created_at DESC LIMIT 1"
@@ -318,6 +360,7 @@ def write_study_report(workspace: Workspace, study_id: str, out: Path) -> Path:
         "γ: norms and directions (precondition (e))": plot_gamma(
             report, out.parent / f"{out.stem}_gamma.png"
         ),
+        "Training action loss per arm": plot_losses(workspace, report, out.parent / f"{out.stem}_losses.png"),
     }
     figures = {title: p.name for title, p in drawn.items() if p is not None}
     markdown = study_markdown(workspace, report, figures) + _videos_section(workspace, study_id)
