@@ -24,7 +24,6 @@ import math
 import os
 import shlex
 import shutil
-import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -40,14 +39,7 @@ from capvector.core.vectors import spectrum, vector_ops
 from capvector.core.vectors.safetensors_io import Checkpoint, CheckpointError, parse_size
 from capvector.core.vectors.spectrum import TensorSpectrum
 from capvector.core.vectors.vector_ops import VectorStat
-from capvector.tasks.runtime.workspace import Workspace, library_versions, provenance
-
-
-def _provenance() -> dict[str, Any]:
-    """`provenance()`, without importing Prefect (~2 s) only to learn that this is no Prefect run."""
-    if "prefect" not in sys.modules:
-        return {"library_versions": library_versions(), "flow_run_id": None, "task_run_id": None}
-    return provenance()
+from capvector.tasks.runtime.workspace import Workspace, light_provenance
 
 
 def import_path(
@@ -58,7 +50,7 @@ def import_path(
     Checkpoint(path)  # refuses truncated files and missing shards before anything is stored
     register = workspace.api.register_dir if path.is_dir() else workspace.api.register_file
     config = {"imported_from": str(path.resolve())}
-    return register(path, kind=kind, name=name or path.name, config=config, **_provenance())
+    return register(path, kind=kind, name=name or path.name, config=config, **light_provenance())
 
 
 @dataclass(frozen=True)
@@ -165,7 +157,7 @@ def _commit_one(workspace: Workspace, item: Input, hashes: dict[Path, str], veri
         name=item.source.name,
         config={"imported_from": str(item.source.resolve())},
         **kw,
-        **_provenance(),
+        **light_provenance(),
     )
     verified[record.id] = {f.path: f.sha256 for f in record.files}
     return record.id
@@ -319,7 +311,7 @@ def _produce(
             register, kw = workspace.api.register_file, {"sha256": digests[staged.name]}
         return register(
             staged, kind=kind, name=out.stem, config=config, parents=parents, parent_hashes=verified,
-            **kw, **_provenance(),
+            **kw, **light_provenance(),
         )  # fmt: skip
 
 
@@ -549,7 +541,7 @@ def stats_cli(
         vector_id, base_id, reference_id = ids
         return workspace.api.register_vector_stats(
             vector_id, stat_rows(rows), base_id=base_id, reference_id=reference_id, parent_hashes=verified,
-            **_provenance(),
+            **light_provenance(),
         )  # fmt: skip
 
     started = utcnow()
@@ -569,7 +561,7 @@ def spectrum_cli(
         vector_id, subtrahend_id = ids
         return workspace.api.register_vector_spectrum(
             vector_id, [r.model_dump() for r in rows], subtrahend_id=subtrahend_id, parent_hashes=verified,
-            **_provenance(),
+            **light_provenance(),
         )  # fmt: skip
 
     started = utcnow()

@@ -1,5 +1,6 @@
-"""The read-only commands (artifacts, lineage, scores, compare, report, studies, sql) and `import`: what a
-researcher asks of the catalogue. None imports torch, pandas, Prefect or Meta-World to answer."""
+"""The read-only commands (artifacts, lineage, scores, compare, report, studies, sql), `import` and
+`import-dataset`: what a researcher asks of the catalogue, and what they bring to it. None of the
+read-only ones imports torch, pandas, Prefect or Meta-World to answer."""
 
 from __future__ import annotations
 
@@ -329,4 +330,28 @@ def import_checkpoint(
     from capvector.tasks.vector_commands import import_path
 
     record = import_path(workspace(home), path, kind, name)
+    console.print(record.id)
+
+
+def import_dataset(
+    directory: Annotated[Path, typer.Argument(help="a LeRobotDataset v3.0 folder (meta/info.json, data/)")],
+    name: Annotated[
+        str | None, typer.Option(help="name in the catalogue (default: lerobot <folder>)")
+    ] = None,
+    home: HomeOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Register a LeRobotDataset v3.0 folder as a demonstration `dataset` artifact: observation.state,
+    action, episodes and task texts (and one image feature, and capvector's own features) read into
+    capvector's format. Its config names the folder and its content hash; a folder `capvector export
+    --format lerobot` wrote reads back exactly, with the exported artifact as its `source` parent.
+    Prints the new artifact's id (and notes on what was left out, e.g. video features, on stderr)."""
+    from capvector.tasks.lerobot_dataset import import_dataset as register
+
+    record, notes = register(workspace(home), directory, name)
+    if as_json:
+        print_json({"id": record.id, "name": record.name, "config": record.config, "notes": notes})
+        return
+    for note in notes:
+        err.print(f"note: {note}", markup=False, highlight=False)
     console.print(record.id)

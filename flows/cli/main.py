@@ -49,6 +49,7 @@ for command in (inspect_commands.lineage, inspect_commands.scores, inspect_comma
                 inspect_commands.report, inspect_commands.studies, inspect_commands.sql):  # fmt: skip
     app.command()(command)
 app.command("import")(inspect_commands.import_checkpoint)
+app.command("import-dataset")(inspect_commands.import_dataset)
 
 
 @app.callback()

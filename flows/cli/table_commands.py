@@ -26,7 +26,8 @@ from the catalogue alone:
   evaluations, the others named below the table). A task's column never mixes protocols.
 
 Success is a fraction in csv, json and parquet (as in the catalogue) and a percentage in the table.
-Nothing here imports pandas, torch, prefect or metaworld.
+Nothing here imports pandas, torch, prefect or metaworld. `export --format lerobot` (a dataset artifact as a
+LeRobotDataset v3.0 folder) imports its code (capvector.tasks.lerobot_dataset) when it runs.
 """
 
 from __future__ import annotations
@@ -425,18 +426,65 @@ LEFT JOIN artifacts a ON a.id = t.checkpoint_id LEFT JOIN protocols p ON p.finge
 ORDER BY t.evaluated_at, t.evaluation_id, t.task"""
 
 
+EXPORT_FORMATS = ("tables", "lerobot")
+
+
 def export(
-    directory: Annotated[Path, typer.Argument(help="folder to write the Parquet files into (created)")],
+    directory: Annotated[Path, typer.Argument(help="folder to write into (created)")],
+    fmt: Annotated[
+        str, typer.Option("--format", help="tables (Parquet tables of the catalogue) | lerobot (a dataset)")
+    ] = "tables",
+    dataset: Annotated[
+        str | None,
+        typer.Option("--dataset", help="with --format lerobot: the dataset artifact (id or prefix)"),
+    ] = None,
     fingerprint: FingerprintOption = None,
     home: HomeOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="print what was written as JSON")] = False,
 ) -> None:
-    """Episodes, evaluations and runs as Parquet files (DuckDB's COPY), for pandas, polars, R or DuckDB.
+    """Episodes, evaluations and runs as Parquet files (DuckDB's COPY), for pandas, polars, R or DuckDB;
+    or, with `--format lerobot --dataset ID`, a demonstration dataset as a LeRobotDataset v3.0 folder.
 
-    episodes.parquet: one row per episode (evaluation, checkpoint, its run and budget, task, goal seed,
-    success, steps, return, protocol); evaluations.parquet: one row per evaluation and task (success
-    rate, episodes, protocol, run and budget); runs.parquet: the `capvector runs` table under
-    --fingerprint (success as a fraction)."""
+    tables (default): episodes.parquet: one row per episode (evaluation, checkpoint, its run and budget,
+    task, goal seed, success, steps, return, protocol); evaluations.parquet: one row per evaluation and
+    task (success rate, episodes, protocol, run and budget); runs.parquet: the `capvector runs` table
+    under --fingerprint (success as a fraction).
+
+    lerobot: meta/info.json, stats.json, tasks.parquet (the instructions), meta/episodes and data
+    Parquet files in LeRobot's v3.0 layout, into DIR (new or empty); `capvector import-dataset` reads
+    it back."""
+    if fmt not in EXPORT_FORMATS:
+        raise typer.BadParameter(f"unknown format {fmt!r}; use {' or '.join(EXPORT_FORMATS)}")
+    if fmt == "lerobot":
+        if dataset is None:
+            raise typer.BadParameter("--format lerobot exports a dataset: give --dataset ID")
+        if fingerprint is not None:
+            raise typer.BadParameter(
+                "--fingerprint chooses the runs table's protocol: not for --format lerobot"
+            )
+        _export_lerobot(directory, dataset, home, as_json)
+        return
+    if dataset is not None:
+        raise typer.BadParameter("--dataset goes with --format lerobot")
+    _export_tables(directory, fingerprint, home, as_json)
+
+
+def _export_lerobot(directory: Path, dataset: str, home: str | None, as_json: bool) -> None:
+    from capvector.tasks.lerobot_dataset import export_dataset
+    from capvector.tasks.runtime.workspace import Workspace
+
+    written = export_dataset(Workspace(resolve_home(home)), dataset, directory)
+    if as_json:
+        typer.echo(json.dumps(written, indent=1))
+        return
+    typer.echo(
+        f"wrote {written['path']}: LeRobotDataset v3.0 of dataset {written['dataset'][:SHOWN]}, "
+        f"{written['total_episodes']} episodes, {written['total_frames']} frames, {written['total_tasks']} "
+        f"tasks at {written['fps']} fps"
+    )
+
+
+def _export_tables(directory: Path, fingerprint: str | None, home: str | None, as_json: bool) -> None:
     api = _open(home)
     chosen = choose_protocols(api, fingerprint)
     runs_sql, runs_params = runs_select(api, [p.fingerprint for p in chosen])

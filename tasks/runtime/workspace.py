@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import shutil
+import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -115,6 +116,14 @@ def provenance() -> dict[str, Any]:
         "flow_run_id": _or_none(flow_run.id),
         "task_run_id": _or_none(task_run.id),
     }
+
+
+def light_provenance() -> dict[str, Any]:
+    """`provenance()`, without importing Prefect (~2 s) only to learn that this is no Prefect run (for the
+    commands that register outside flows)."""
+    if "prefect" not in sys.modules:
+        return {"library_versions": library_versions(), "flow_run_id": None, "task_run_id": None}
+    return provenance()
 
 
 def _or_none(value: Any) -> str | None:
