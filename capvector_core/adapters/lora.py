@@ -1,10 +1,11 @@
 """LoRA on chosen `nn.Linear` layers of any `nn.Module`, through peft: peft's layers, layout and loader.
 
 Why peft: it is the library our users already have. `apply_lora` injects peft's LoRA layers in place
-(`peft.inject_adapter_in_model`); `save_adapter` writes what `peft.PeftModel.from_pretrained(policy, dir)`
-loads (`adapter_model.safetensors` with `base_model.model.<module>.lora_A.weight` (r × in) and
-`...lora_B.weight` (out × r), and peft's own `adapter_config.json`); `load_adapter` goes through peft, so a
-peft-made adapter's `use_rslora`, `alpha_pattern` and `rank_pattern` give peft's scaling; `merge_lora` folds
+(through peft's `LoraModel`, as `peft.inject_adapter_in_model` does; `inject` serves AdaLoRA too);
+`save_adapter` writes what `peft.PeftModel.from_pretrained(policy, dir)` loads
+(`adapter_model.safetensors` with `base_model.model.<module>.lora_A.weight` (r × in) and
+`...lora_B.weight` (out × r), and peft's own `adapter_config.json`); `load_adapter` goes through peft, so
+a peft-made adapter's `use_rslora`, `alpha_pattern` and `rank_pattern` give peft's scaling; `merge_lora` folds
 each adapter in with peft's own merge, so it equals peft's `merge_and_unload()` tensor for tensor.
 
 Targets are picked with `capvector.core.vectors.module_patterns` (one syntax for every name filter); only real
@@ -54,6 +55,7 @@ from capvector.core.vectors.safetensors_io import atomic_directory
 if TYPE_CHECKING:
     import peft
     from peft.tuners.lora import LoraLayer
+    from peft.tuners.tuners_utils import BaseTuner
 
 ADAPTER_WEIGHTS = "adapter_model.safetensors"
 ADAPTER_CONFIG = "adapter_config.json"
@@ -192,7 +194,7 @@ def linear_targets(model: nn.Module, patterns: list[str]) -> list[str]:
     return names
 
 
-def _peft_targets(model: nn.Module, patterns: list[str], names: list[str]) -> str:
+def peft_targets(model: nn.Module, patterns: list[str], names: list[str]) -> str:
     """peft's `target_modules` for `names`: the patterns' regex if it selects exactly them, else the names."""
     regex = module_patterns.to_peft_regex(patterns)
     compiled = re.compile(regex)
@@ -235,7 +237,7 @@ def _unwrap(model: nn.Module) -> None:
 
 
 @contextmanager
-def _undone_on_error(model: nn.Module) -> Iterator[None]:
+def undone_on_error(model: nn.Module) -> Iterator[None]:
     """On an exception, remove injected peft layers and restore which parameters were trainable."""
     flags = [(p, p.requires_grad) for p in model.parameters()]
     try:
@@ -247,21 +249,20 @@ def _undone_on_error(model: nn.Module) -> Iterator[None]:
         raise
 
 
-def _inject(model: nn.Module, config: peft.LoraConfig) -> list[str]:
-    """Inject peft's LoRA layers in place (everything else frozen); refuse what we cannot run.
+def inject(model: nn.Module, config: peft.PeftConfig, tuner: type, layer: type) -> BaseTuner:
+    """Inject peft's layers for `config` in place (everything else frozen) and return peft's tuner: what
+    `peft.inject_adapter_in_model` does, keeping the tuner (AdaLoRA's rank allocator lives on it).
 
-    Call inside `_undone_on_error`."""
-    import peft
-
+    `tuner` is peft's model class for the config's type (`peft.LoraModel`, `peft.AdaLoraModel`), `layer` its
+    wrapper of `nn.Linear`; anything else it wrapped, or a child of `nn.MultiheadAttention`, is refused.
+    Call inside `undone_on_error`."""
     _check_peft_config(model)
     if adapter_modules(model) or _own_adapters(model) or hasattr(model, "peft_config"):
         raise ValueError("the model already has adapters (merge or remove them first)")
-    peft.inject_adapter_in_model(config, model, adapter_name=ADAPTER_NAME)
+    made = tuner(model, config, adapter_name=ADAPTER_NAME)
     layers = adapter_modules(model)
     wrong = [
-        f"{n} ({type(m.get_base_layer()).__name__})"
-        for n, m in layers.items()
-        if not isinstance(m, peft.tuners.lora.Linear)
+        f"{n} ({type(m.get_base_layer()).__name__})" for n, m in layers.items() if not isinstance(m, layer)
     ]
     bad = _mha_children(model, list(layers))
     if wrong or bad:
@@ -269,14 +270,22 @@ def _inject(model: nn.Module, config: peft.LoraConfig) -> list[str]:
             f"only nn.Linear layers outside nn.MultiheadAttention can be adapted here; got {wrong + bad}"
         )
     _keep_off_fused_paths(model)
-    return list(layers)
+    return made
+
+
+def _inject(model: nn.Module, config: peft.LoraConfig) -> list[str]:
+    """Inject peft's LoRA layers in place; the names of the adapted layers. Call inside `undone_on_error`."""
+    import peft
+
+    inject(model, config, peft.LoraModel, peft.tuners.lora.Linear)
+    return list(adapter_modules(model))
 
 
 def apply_lora(model: nn.Module, config: LoraConfig) -> list[str]:
     """Add peft LoRA layers to the targeted linear layers, in place; everything else is frozen."""
     names = linear_targets(model, config.target_modules)
-    with _undone_on_error(model):
-        return _inject(model, config.to_peft(_peft_targets(model, config.target_modules, names)))
+    with undone_on_error(model):
+        return _inject(model, config.to_peft(peft_targets(model, config.target_modules, names)))
 
 
 def write_adapter(
@@ -308,6 +317,10 @@ def save_adapter(model: nn.Module, out: str | os.PathLike, overwrite: bool = Fal
     configs = getattr(model, "peft_config", {})
     if set(configs) != {ADAPTER_NAME}:
         raise ValueError(f"expected one adapter named {ADAPTER_NAME!r}, found {sorted(configs)}")
+    if configs[ADAPTER_NAME].peft_type != "LORA":
+        raise TypeError(
+            f"this is a {configs[ADAPTER_NAME].peft_type} adapter; save AdaLoRA with adalora.save_adapter"
+        )
     import peft
 
     config = copy.copy(configs[ADAPTER_NAME])
@@ -585,7 +598,10 @@ def load_adapter(model: nn.Module, path: str | os.PathLike) -> list[str]:
     doc, tensors = read_adapter(path)
     kind = doc.get("peft_type")
     if kind != "LORA":
-        hint = "; use capvector.core.adapters.lora_sp.load_adapter" if kind == "LORA_SP" else ""
+        hint = {
+            "LORA_SP": "; use capvector.core.adapters.lora_sp.load_adapter",
+            "ADALORA": "; load AdaLoRA with peft.PeftModel.from_pretrained",
+        }.get(kind, "")
         raise ValueError(f"{path} holds a {kind} adapter; this loads peft LoRA (LORA) adapters only{hint}")
     _check_numbers(doc, path)
     config = peft.LoraConfig.from_pretrained(str(path))
@@ -597,7 +613,7 @@ def load_adapter(model: nn.Module, path: str | os.PathLike) -> list[str]:
     if adapter_modules(model) or _own_adapters(model) or hasattr(model, "peft_config"):
         raise ValueError("the model already has adapters (merge or remove them first)")
     _check_tensors_fit(_adapter_targets(model, doc, config, path), tensors, path)
-    with _undone_on_error(model):
+    with undone_on_error(model):
         names = _inject(model, config)
         state = {k.removeprefix(PEFT_PREFIX): t for k, t in tensors.items()}
         check_tensors(peft.get_peft_model_state_dict(model, adapter_name=ADAPTER_NAME), state)

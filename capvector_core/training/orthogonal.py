@@ -26,8 +26,9 @@ Modes:
 - `dense` (full fine-tuning): Δ' = θ − θ_meta per parameter tensor.
 - `lora_exact`: Δ' is each adapter's dense update, ΔW = s·B·A (materialised per layer through peft's
   `get_delta_weight`, so peft's scaling, rsLoRA and per-layer rank/alpha included; for LoRA-SP the
-  merge-time update s·B·diag(σ̄)·A), compared with γ of that layer's weight (`<module>.weight`).
-  Adapters are peft's LoRA layers (`lora.apply_lora`) or LoRA-SP layers; LoRA variants whose update is not
+  merge-time update s·B·diag(σ̄)·A; for AdaLoRA peft's s·B·diag(E)·A, pruned triplets at E = 0), compared
+  with γ of that layer's weight (`<module>.weight`). Adapters are peft's LoRA and AdaLoRA layers
+  (`lora.apply_lora`, `adalora.apply_adalora`) or LoRA-SP layers; LoRA variants whose update is not
   s·B·A (DoRA) are refused.
 - `lora_a`: the cheaper form the paper describes for LoRA, on the A matrices only, independent of B.
   The sources do not say how a full-weight γ (out × in) meets A (r × in); this project defines it
@@ -77,10 +78,12 @@ def _delta(layer: nn.Module) -> torch.Tensor:
 
 
 def _a_matrices(layer: nn.Module) -> list[torch.Tensor]:
-    """The A matrices (r × in) the layer reads its input through (one per active peft adapter)."""
+    """The A matrices (r × in) the layer reads its input through (one per active peft adapter; AdaLoRA
+    keeps A as a bare parameter, LoRA as an `nn.Linear`)."""
     if isinstance(layer, lora_sp.LoraSPLinear):
         return [layer.lora_A.weight]
-    return [layer.lora_A[a].weight for a in lora.plain_adapters(layer)]
+    found = [layer.lora_A[a] for a in lora.plain_adapters(layer)]
+    return [a if isinstance(a, nn.Parameter) else a.weight for a in found]
 
 
 class _DenseL1(torch.autograd.Function):

@@ -13,7 +13,8 @@ the objective's weight 0 they are the same weights, bit for bit. torch's global 
 with the seed (for whatever else draws from it: a plugin policy's loss, adapter dropout).
 
 Exact resume: every checkpoint holds the policy and aux-head weights (safetensors), the optimizer
-state, the batch and policy generators' states and torch's global RNG states, and the step. The
+state, the batch and policy generators' states and torch's global RNG states, the step, and the state of
+an `after_optimizer_step` hook that has one (AdaLoRA's rank allocator). The
 learning rate is a pure function of the step (linear warm-up then cosine to ``min_lr_ratio``), so it
 needs no state of its own. ``train`` resumes from the newest complete checkpoint in ``run_dir``; a run
 killed at any point and rerun ends with the same weights, bit for bit, as an uninterrupted one with the
@@ -49,7 +50,7 @@ import time
 from collections.abc import Callable, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Protocol, runtime_checkable
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -245,7 +246,7 @@ class _Run:
     """State of one training invocation (kept together so checkpointing sees all of it), and the steps
     of its loop: schedule, loss, clipping, and the bookkeeping after each step."""
 
-    def __init__(self, policy, objective, dataset, config, run_dir, device, extra_losses):
+    def __init__(self, policy, objective, dataset, config, run_dir, device, extra_losses, step_hook=None):
         """On `device` in train mode, with a fresh optimizer and the run's seeded generators."""
         policy.to(device).train()
         # the policy's, then the heads': the order the gradient norm sums in (bit for bit)
@@ -259,6 +260,7 @@ class _Run:
         self.sampling = torch.Generator(device=device).manual_seed(_stream_seed(config.seed, "policy"))
         self.origin = {"data": str(getattr(dataset, "content_hash", None)), "start": _weights_digest(policy)}
         self.policy, self.objective, self.extra_losses = policy, objective, extra_losses
+        self.step_hook = step_hook
         self.config, self.run_dir, self.device = config, run_dir, device
         self.step = 0
         self.train_seconds = 0.0
@@ -343,6 +345,8 @@ class _Run:
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
         }
+        if isinstance(self.step_hook, StatefulStepHook):
+            state["step_hook"] = self.step_hook.state_dict()
         torch.save(state, tmp / "trainer_state.pt")
         (tmp / "train_config.json").write_text(self.config.model_dump_json(indent=1))
         fsync_files(tmp)
@@ -388,6 +392,8 @@ class _Run:
         state = torch.load(path / "trainer_state.pt", weights_only=True, map_location="cpu")
         if "sampling" not in state:  # its policy drew from the global RNG: cannot be continued exactly
             raise KeyError(f"{path.name} has no policy generator state (written before there was one)")
+        if isinstance(self.step_hook, StatefulStepHook) and "step_hook" not in state:
+            raise KeyError(f"{path.name} has no state of the after_optimizer_step hook")
         return {
             "policy": load_file(str(path / "policy.safetensors")),
             "aux": load_file(str(path / "aux.safetensors")) if self.objective is not None else None,
@@ -413,6 +419,8 @@ class _Run:
         torch.set_rng_state(state["torch_rng"])
         if state["cuda_rng"] and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda_rng"])
+        if isinstance(self.step_hook, StatefulStepHook):
+            self.step_hook.load_state_dict(state["step_hook"])
         self.step = int(state["step"])
         self.train_seconds = float(state["train_seconds"])
 
@@ -504,6 +512,21 @@ ProgressReport = Callable[[int, int, str], None]
 # on_checkpoint(step, folder): called once a resumable checkpoint is complete on disk (its loss curve
 # rows up to `step` are flushed too); e.g. capvector.tasks.runtime.scratch copies it off the machine
 CheckpointHook = Callable[[int, Path], None]
+# after_optimizer_step(step): called after each optimizer step with its 0-based index (peft's global_step:
+# AdaLoRA's update_and_allocate), gradients still in place; the loop knows nothing of what it does
+StepHook = Callable[[int], None]
+
+
+@runtime_checkable
+class StatefulStepHook(Protocol):
+    """A step hook with state of its own (as `nn.Module`'s: tensors, lists, numbers), saved in every
+    checkpoint and restored on resume, so a resumed run stays exact."""
+
+    def __call__(self, step: int) -> None: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
 def train(
@@ -514,6 +537,7 @@ def train(
     extra_losses: Mapping[str, ExtraLoss] | None = None,
     progress: ProgressReport | None = None,
     on_checkpoint: CheckpointHook | None = None,
+    after_optimizer_step: StepHook | None = None,
 ) -> TrainResult:
     """Train ``policy`` in place on ``dataset`` (a DemoDataset: ``.tensors``, ``.meta.tasks/.instructions``).
 
@@ -521,6 +545,8 @@ def train(
     and logged under its name every step (the orthogonal regularizer and LoRA-SP plug in here).
     ``on_checkpoint(step, folder)``: called after each resumable checkpoint is written (outside the
     timed loop), with ``run_dir/loss_curve.jsonl`` complete up to ``step``.
+    ``after_optimizer_step(step)``: called after each optimizer step (0-based `step`, before the next
+    step's zero_grad), e.g. AdaLoRA's rank allocation; a `StatefulStepHook`'s state resumes with the run.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -528,7 +554,7 @@ def train(
     device, execution = _set_up_torch(config)
     objective = _objective(policy, dataset, config, extra_losses)
     n, make_batch = _batcher(policy, objective, dataset, config, device)
-    run = _Run(policy, objective, dataset, config, run_dir, device, extra_losses)
+    run = _Run(policy, objective, dataset, config, run_dir, device, extra_losses, after_optimizer_step)
 
     curve_path = run_dir / "loss_curve.jsonl"
     passed_over = run.resume(set(config.snapshot_steps), curve_path)
@@ -546,6 +572,8 @@ def train(
             total.backward()
             grad_norm = run.clip_gradients()
             run.optimizer.step()
+            if after_optimizer_step is not None:
+                after_optimizer_step(step)
             run.step = step + 1
             curve.add(values, grad_norm)
             run.after_step(curve, lr, on_checkpoint)

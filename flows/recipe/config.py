@@ -12,6 +12,7 @@ from typing import Any, ClassVar, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, model_validator
 
+from capvector.core.adapters.adalora import AdaLoraConfig
 from capvector.core.adapters.lora import LoraConfig
 from capvector.core.adapters.lora_sp import LoraSPConfig
 from capvector.core.evaluation.rollouts import EvalConfig
@@ -29,7 +30,16 @@ from capvector.tasks.steps.vectors import MergeConfig, VectorFilter
 PRESET_DIR = Path(__file__).parent.parent / "presets"
 
 ArmName = Literal[
-    "sft", "aux", "capvector", "meta_sft", "sft_lora", "capvector_lora", "sft_lora_sp", "capvector_lora_sp"
+    "sft",
+    "aux",
+    "capvector",
+    "meta_sft",
+    "sft_lora",
+    "capvector_lora",
+    "sft_lora_sp",
+    "capvector_lora_sp",
+    "sft_adalora",
+    "capvector_adalora",
 ]
 
 
@@ -43,7 +53,7 @@ class Arm(BaseModel):
     init: Literal["pretrained", "meta", "null_meta", "dose_meta", "auxiliary", "standard"]
     aux: bool = False
     orthogonal: bool = False
-    adapter: Literal["full", "lora", "lora_sp"] = "full"
+    adapter: Literal["full", "lora", "lora_sp", "adalora"] = "full"
 
 
 ARMS: dict[str, Arm] = {
@@ -55,6 +65,8 @@ ARMS: dict[str, Arm] = {
     "capvector_lora": Arm(init="meta", orthogonal=True, adapter="lora"),
     "sft_lora_sp": Arm(init="pretrained", adapter="lora_sp"),
     "capvector_lora_sp": Arm(init="meta", orthogonal=True, adapter="lora_sp"),
+    "sft_adalora": Arm(init="pretrained", adapter="adalora"),
+    "capvector_adalora": Arm(init="meta", orthogonal=True, adapter="adalora"),
     # The study's controls (capvector.flows.study.plan): they need a null vector and the extraction
     # checkpoints per draw.
     "null_capvector": Arm(init="null_meta", orthogonal=True),
@@ -270,19 +282,23 @@ class PipelineConfig(BaseModel):
         LoraSPConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"], bank_size=32),
         description="the adapter of the *_lora_sp arms",
     )
+    adalora: AdaLoraConfig = Field(
+        AdaLoraConfig(target_modules=["attn.*_proj", "mlp.fc*", "action_head.*"]),
+        description="the adapter of the *_adalora arms (peft's AdaLoRA: ranks reallocated while training)",
+    )
     adapter_lr: float | None = Field(
         None,
         gt=0,
         allow_inf_nan=False,
-        description="learning rate of the LoRA / LoRA-SP arms (adapters usually want several times full "
-        "fine-tuning's); null: downstream.lr. Choose it on validation goals, e.g. a one-cell `sweep` "
-        "with sweep.arm=sft_lora",
+        description="learning rate of the LoRA / LoRA-SP / AdaLoRA arms (adapters usually want several "
+        "times full fine-tuning's); null: downstream.lr. Choose it on validation goals, e.g. a one-cell "
+        "`sweep` with sweep.arm=sft_lora",
     )
     arms: list[ArmName] = Field(
         default_factory=lambda: ["sft", "aux", "capvector"],
         description="downstream recipes compared: sft (from θ_pt), aux (SFT + aux objective), capvector "
         "(from θ_meta with the orthogonal loss), meta_sft (from θ_meta, plain SFT), and the *_lora / "
-        "*_lora_sp adapter variants; a study uses study.arms instead",
+        "*_lora_sp / *_adalora adapter variants; a study uses study.arms instead",
     )
     seeds: list[int] = Field(
         default_factory=lambda: [0],
@@ -386,6 +402,7 @@ class PipelineConfig(BaseModel):
             adapter=spec.adapter,
             lora=self.lora if spec.adapter == "lora" else None,
             lora_sp=self.lora_sp if spec.adapter == "lora_sp" else None,
+            adalora=self.adalora if spec.adapter == "adalora" else None,
             orthogonal=orthogonal,
         )
 

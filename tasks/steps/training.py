@@ -4,7 +4,7 @@ One step covers every training stage of the recipe; what differs is the config (
 adapter, orthogonal regularizer) and the inputs (`data`, optional `init` checkpoint, optional
 `vector` γ for the regularizer). The checkpoint artifact holds dense weights only (LoRA runs are
 merged), so vectors can be taken from any of them; its record keeps the loss curve and run summary,
-and a LoRA/LoRA-SP adapter is a separate artifact, its parent with role `adapter`. The checkpoint
+and a LoRA/LoRA-SP/AdaLoRA adapter is a separate artifact, its parent with role `adapter`. The checkpoint
 is registered last: it is the step's commit point.
 
 Where it trained is provenance, not part of the cache key (capvector.core.training.execution): the records of
@@ -27,12 +27,13 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from capvector.core.adapters import lora
+from capvector.core.adapters.adalora import AdaLoraConfig
 from capvector.core.adapters.lora import LoraConfig
 from capvector.core.adapters.lora_sp import LoraSPConfig
 from capvector.core.policies.base import AnyPolicyConfig, Policy, build_policy, load_policy, save_policy
 from capvector.core.simulation.demos import DemoDataset
 from capvector.core.training.orthogonal import OrthogonalRegularizer
-from capvector.core.training.trainer import TrainConfig, TrainResult, train
+from capvector.core.training.trainer import StepHook, TrainConfig, TrainResult, train
 from capvector.tasks.adapters import ADAPTERS
 from capvector.tasks.runtime.caching import selected_by
 from capvector.tasks.runtime.progress import progress_printer
@@ -122,6 +123,7 @@ class TrainStepConfig(BaseModel):
     adapter: Literal[tuple(ADAPTERS)] = "full"  # type: ignore[valid-type]  # capvector.tasks.adapters: the registry
     lora: LoraConfig | None = None
     lora_sp: LoraSPConfig | None = None
+    adalora: AdaLoraConfig | None = None
     orthogonal: OrthogonalSettings | None = None
 
     @model_validator(mode="after")
@@ -129,6 +131,7 @@ class TrainStepConfig(BaseModel):
         form = ADAPTERS[self.adapter]
         if form.section and form.settings(self) is None:
             raise ValueError(f"adapter {self.adapter!r} needs a `{self.adapter}` config")
+        form.check(self)
         return self
 
 
@@ -205,7 +208,8 @@ def _train_checkpoint(call: StepCall) -> str:
     extra, lam = _orthogonal_loss(workspace, model, dataset, cfg, inputs)
     extra |= form.extra_losses()
     trainable = lora.trainable_parameter_count(model)
-    result = _train_resumable(workspace, step, key, model, dataset, cfg, extra)
+    hook = form.after_optimizer_step(model)
+    result = _train_resumable(workspace, step, key, model, dataset, cfg, extra, hook)
     summary = {
         "step": step,
         "steps": result.steps,
@@ -247,9 +251,11 @@ def _train_resumable(
     dataset: DemoDataset,
     cfg: TrainStepConfig,
     extra: dict[str, Any],
+    after_optimizer_step: StepHook | None = None,
 ) -> TrainResult:
     """`train` in the key's run folder; with a checkpoint mirror (capvector.tasks.runtime.scratch) it
-    resumes from another machine's checkpoint and copies ours."""
+    resumes from another machine's checkpoint and copies ours. `after_optimizer_step`: the adapter's hook
+    (AdaLoRA's rank allocation), or None."""
     run_dir = workspace.run_dir(key)
     mirror = workspace.checkpoint_mirror(key)
     on_checkpoint = None
@@ -264,6 +270,7 @@ def _train_resumable(
         extra_losses=extra,
         progress=progress_printer(step, "steps"),
         on_checkpoint=on_checkpoint,
+        after_optimizer_step=after_optimizer_step,
     )
 
 
