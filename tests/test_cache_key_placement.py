@@ -77,6 +77,7 @@ def test_demo_workers_and_evaluation_batch_size_leave_the_key():
 
     assert eval_key(batch_size=1) == eval_key(batch_size=64)
     assert eval_key(batch_size=1) != eval_key(batch_size=1, record_video=1)  # it registers videos
+    assert eval_key(record_video=1) != eval_key(record_video=1, video_size=224)  # other videos
 
 
 def test_a_trained_checkpoint_records_where_it_ran_and_another_placement_is_a_hit(tmp_path):

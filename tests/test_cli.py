@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+import imageio.v3 as iio
+import numpy as np
 import pytest
 import torch
 from conftest import REPO, run_cli
@@ -682,14 +684,15 @@ def test_a_fully_cached_run_is_answered_before_any_flow_and_dry_run_shows_the_pl
     assert ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM artifacts")[1][0][0] == artifacts_before
 
 
-def test_evaluate_with_video_registers_gifs_as_artifacts_of_the_evaluation(smoke_home):
+def test_evaluate_with_video_registers_mp4s_of_the_evaluation_and_says_where(smoke_home, tmp_path):
     home, ids = smoke_home
     checkpoint = ids["checkpoints"]["sft/seed0"]
-    args = ("evaluate", checkpoint, "--tasks", "reach-v3", "--episodes", "2", "--horizon", "15", "--json")
-    with_video = json.loads(run_cli(*args, "--video", "1", home=home).stdout)
-    without = json.loads(run_cli(*args, home=home).stdout)
+    args = ("evaluate", checkpoint, "--tasks", "reach-v3", "--episodes", "2", "--horizon", "15")
+    with_video = json.loads(run_cli(*args, "--video", "1", "--json", home=home).stdout)
+    without = json.loads(run_cli(*args, "--json", home=home).stdout)
     evaluation = with_video[0]["evaluation"]
     assert evaluation == without[0]["evaluation"]  # a video is not part of the protocol or the scores
+    assert with_video[0]["success_rates"] == without[0]["success_rates"]
     api = ArtifactsAPI(str(home))
     _, rows = api.query_rows(
         "SELECT a.id, a.name, e.role FROM edges e JOIN artifacts a ON a.id = e.child "
@@ -697,4 +700,42 @@ def test_evaluate_with_video_registers_gifs_as_artifacts_of_the_evaluation(smoke
         [evaluation],
     )
     assert len(rows) == 1 and rows[0][2] == "of" and "reach-v3 seed" in rows[0][1]
-    assert api.path(rows[0][0]).read_bytes()[:6] == b"GIF89a"
+    video = rows[0][0]
+    assert with_video[0]["videos"] == [{"name": rows[0][1], "id": video}]
+    printed = run_cli(*args, "--video", "1", home=home).stdout  # cached: the same video
+    assert f"capvector artifacts get {video[:12]} -o ." in printed and "reach-v3 seed" in printed
+    copied = Path(run_cli("artifacts", "get", video[:12], "-o", str(tmp_path), home=home).stdout.strip())
+    assert copied.suffix == ".mp4" and copied.read_bytes()[4:8] == b"ftyp"
+    frames = iio.imread(copied, plugin="FFMPEG", index=None)
+    seed = int(rows[0][1].rsplit(" ", 1)[1])
+    (recorded,) = (e for e in json.loads(api.path(evaluation).read_text())["episodes"] if e["seed"] == seed)
+    assert frames.shape == (recorded["steps"] + 1, 256, 256, 3)  # the reset, then one per step
+
+
+def test_gif_videos_recorded_before_mp4s_are_still_listed_and_copied_out(tmp_path, capsys):
+    """A home written when videos were GIFs: its videos are found with the new ones, and copied out."""
+    from PIL import Image
+
+    from capvector.flows.cli.experiment_commands import _print_videos
+    from capvector.tasks.runtime.workspace import Workspace
+    from capvector.tasks.steps.evaluation import VIDEO_KIND, video_ids_of, videos_of
+
+    ws = Workspace(str(tmp_path / "home"))
+    parent = ws.api.register_json({"stand-in": "evaluation"}, "report", "an evaluation")
+    gif = tmp_path / "reach-v3-seed50000.gif"
+    images = [Image.fromarray(np.full((64, 64, 3), shade, np.uint8)) for shade in (0, 128, 255)]
+    images[0].save(gif, save_all=True, append_images=images[1:], duration=40, loop=0)  # as GIFs were
+    old = ws.api.register_file(gif, VIDEO_KIND, "evaluate: reach-v3 seed 50000", parents=[(parent.id, "of")])
+    assert video_ids_of(ws, [parent.id]) == {parent.id: [("evaluate: reach-v3 seed 50000", old.id)]}
+    ((name, path),) = videos_of(ws, [parent.id])[parent.id]
+    assert Image.open(path).n_frames == 3
+    _print_videos(video_ids_of(ws, [parent.id]), None)
+    printed = capsys.readouterr().out
+    line = f"{parent.id[:12]}  evaluate: reach-v3 seed 50000   capvector artifacts get {old.id[:12]} -o ."
+    assert line in printed
+    listed = CliRunner().invoke(app, ["artifacts", "list", "--kind", "video", "--home", ws.home, "--json"])
+    assert [row["id"] for row in json.loads(listed.stdout)] == [old.id]
+    out = tmp_path / "out"
+    out.mkdir()
+    got = CliRunner().invoke(app, ["artifacts", "get", old.id[:12], "-o", str(out), "--home", ws.home])
+    assert got.exit_code == 0 and (out / gif.name).read_bytes() == gif.read_bytes()

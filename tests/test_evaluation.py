@@ -1,10 +1,12 @@
 """Batched evaluation: expert success, records equal to a one-env-at-a-time loop, protocol
 fingerprint, bad policy outputs, videos."""
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from capvector.core.evaluation.fields import EVAL_FIELDS
 from capvector.core.evaluation.rollouts import (
     EpisodeRecord,
     EvalConfig,
@@ -116,7 +118,7 @@ def test_fingerprint_tracks_the_protocol_only():
     ]
     for change in changes:
         assert protocol_fingerprint(base.model_copy(update=change)) != fingerprint, change
-    not_protocol = base.model_copy(update={"batch_size": 7, "record_video": True})
+    not_protocol = base.model_copy(update={"batch_size": 7, "record_video": True, "video_size": 512})
     assert protocol_fingerprint(not_protocol) == fingerprint
     pixels = base.model_copy(update={"obs_mode": "pixels"})
     assert protocol_fingerprint(pixels.model_copy(update={"image_size": 96})) != protocol_fingerprint(pixels)
@@ -159,24 +161,44 @@ def test_evaluation_seeds_may_not_overlap_demo_seeds():
         EvalConfig(tasks=["reach-v3"], seed_base=0)
 
 
-def test_pixels_evaluation_with_video(tmp_path):
-    config = EvalConfig(
-        tasks=["reach-v3"],
-        episodes_per_task=2,
-        horizon=40,
-        obs_mode="pixels",
-        image_size=32,
-        record_video=True,
-    )
-    seen = []
+@pytest.mark.parametrize(
+    ("obs_mode", "video_size"), [("pixels", None), ("state", 224)], ids=["pixels-default-size", "state-224"]
+)
+def test_recorded_episode_is_an_mp4_and_changes_nothing(tmp_path, obs_mode, video_size):
+    """A real episode of each task's first seed as an H.264 mp4 at the video size (one frame at reset,
+    one per step), while the policy sees its own 32 px images and every record equals a run without."""
+    protocol = {"tasks": ["reach-v3"], "episodes_per_task": 2, "horizon": 12, "obs_mode": obs_mode}
+    protocol |= {"image_size": 32} | ({"video_size": video_size} if video_size else {})
+    config = EvalConfig(**protocol, record_video=1)
+    side = video_size or EVAL_FIELDS["video_size"].default
+    assert side >= 224
 
-    def expert_checking_images(obs, task_names):
-        seen.append(obs["image"].shape)
-        return expert_action_fn(obs, task_names)
+    def run(config, **kw):
+        seen = []
 
-    result = evaluate(expert_checking_images, config, video_dir=tmp_path)
-    assert seen[0] == (2, 32, 32, 3)
-    assert list(result.videos) == [f"reach-v3 seed {EVAL_SEED_BASE}"]  # record_video=True: one per task
-    assert (tmp_path / f"reach-v3-seed{EVAL_SEED_BASE}.gif").stat().st_size > 0
+        def expert_checking_images(obs, task_names):
+            seen.append(obs["image"].copy() if obs_mode == "pixels" else obs["state"].copy())
+            return expert_action_fn(obs, task_names)
+
+        return evaluate(expert_checking_images, config, **kw), seen
+
+    result, seen = run(config, video_dir=tmp_path)
+    plain, plain_seen = run(config.model_copy(update={"record_video": 0}))
+    assert result.episodes == plain.episodes and result.success_rates == plain.success_rates
+    assert all(np.array_equal(a, b) for a, b in zip(seen, plain_seen, strict=True))
+    if obs_mode == "pixels":
+        assert seen[0].shape == (2, 32, 32, 3)
+    assert plain.videos == {} and list(result.videos) == [f"reach-v3 seed {EVAL_SEED_BASE}"]
+    path = tmp_path / f"reach-v3-seed{EVAL_SEED_BASE}.mp4"
+    assert result.videos[f"reach-v3 seed {EVAL_SEED_BASE}"] == str(path)
+    frames = iio.imread(path, plugin="FFMPEG", index=None)
+    assert frames.shape == (result.episodes[0].steps + 1, side, side, 3)
+    assert frames.mean() > 20  # a scene, not a black frame
+    assert iio.immeta(path, plugin="FFMPEG")["codec"] == "h264"
     with pytest.raises(ValueError, match="needs a video_dir"):
         evaluate(expert_action_fn, config)
+
+
+def test_video_size_must_suit_the_encoder():
+    with pytest.raises(ValidationError, match="video_size"):
+        EvalConfig(tasks=["reach-v3"], video_size=250)

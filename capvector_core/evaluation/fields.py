@@ -20,6 +20,7 @@ EVAL_FIELDS = {
     "obs_mode": EvalField("--obs-mode", str, "state", "state | pixels: what the policy observes"),
     "camera": EvalField("--camera", str, "corner2", "pixels: camera (another tests generalization)"),
     "image_size": EvalField("--image-size", int, 64, "pixels: image side"),
-    "record_video": EvalField("--video", int, 0, "episodes per task recorded as GIF video artifacts"),
+    "record_video": EvalField("--video", int, 0, "episodes per task recorded as mp4 video artifacts"),
+    "video_size": EvalField("--video-size", int, 256, "video frames' side (apart from the policy's images)"),
     "batch_size": EvalField("--batch-size", int, 64, "envs stepped together (memory; results equal)"),
 }

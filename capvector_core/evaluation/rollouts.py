@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from capvector.core.evaluation.fields import EVAL_FIELDS
+from capvector.core.evaluation.video import VIDEO_SUFFIX, Mp4Writer
 from capvector.core.simulation.demos import (
     EVAL_SEED_BASE,
     TRAIN_SEED_BASE,
@@ -51,7 +52,8 @@ def _field(name: str, **constraints: Any) -> Any:
 
 
 class EvalConfig(BaseModel):
-    """The evaluation protocol (everything but `batch_size` and `record_video` enters the fingerprint)."""
+    """The evaluation protocol (everything but `batch_size`, `record_video` and `video_size` enters the
+    fingerprint: videos are rendered apart from what the policy sees)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -68,6 +70,7 @@ class EvalConfig(BaseModel):
         "batch_size", ge=1
     )
     record_video: int = _field("record_video", ge=0)
+    video_size: int = _field("video_size", ge=64, le=1024, multiple_of=16)
 
     @field_validator("tasks")
     @classmethod
@@ -120,7 +123,7 @@ class EvalResult(BaseModel):
     env_steps: int
     policy_calls: int
     wall_time_s: float
-    videos: dict[str, str] = {}  # "<task> seed <goal seed>" -> path of that episode's GIF
+    videos: dict[str, str] = {}  # "<task> seed <goal seed>" -> path of that episode's mp4
 
     def to_json(self) -> str:
         return self.model_dump_json(indent=1)
@@ -214,18 +217,20 @@ class _Rollout:
     """One batch of episodes stepped in lockstep, with per-episode bookkeeping.
 
     Observations are taken only after the last step of each chunk, while that env holds the shared
-    model; images are rendered when the policy is called, and every step for recorded episodes (in
-    pixels mode the last frame is the image)."""
+    model; images are rendered when the policy is called, and video frames (`video_size`, a renderer
+    of their own) every step of the recorded episodes only, each streamed into its episode's mp4."""
 
     def __init__(
         self,
         envs: list[MetaWorldEnv],
         seeds: list[int],
-        record: list[bool],
         horizon: int,
         on_done: Callable[[], None],
+        videos: dict[int, Mp4Writer],
+        video_size: int,
     ):
         self.envs, self.seeds, self.horizon, self.on_done = envs, seeds, horizon, on_done
+        self.videos, self.video_size = videos, video_size  # episode -> its video's writer
         self.tasks = [env.task for env in envs]
         self.pixels = envs[0].config.obs_mode == "pixels"
         self.states = []
@@ -235,14 +240,14 @@ class _Rollout:
             self.privileged.append(env.privileged())
         self.returns = [0.0] * len(envs)
         self.success = [False] * len(envs)
-        self.frames = {i: [envs[i].render()] for i, rec in enumerate(record) if rec}
+        for i, writer in videos.items():
+            writer.append(envs[i].render(video_size))
         self.policy_calls = 0
 
     def _observations(self, rows: list[int]) -> dict[str, np.ndarray]:
         obs = batch_observations([self.states[i] for i in rows], [self.privileged[i] for i in rows])
         if self.pixels:
-            images = [self.frames[i][-1] if i in self.frames else self.envs[i].render() for i in rows]
-            obs["image"] = np.stack(images)
+            obs["image"] = np.stack([self.envs[i].render() for i in rows])
         return obs
 
     def run(self, action_fn: ActionFn, execute_steps: int) -> None:
@@ -262,8 +267,8 @@ class _Rollout:
         env = self.envs[i]
         self.states[i], reward, success, _ = env.step_state(action)
         self.returns[i] += reward
-        if i in self.frames:
-            self.frames[i].append(env.render())
+        if i in self.videos:
+            self.videos[i].append(env.render(self.video_size))
         if success or env.steps >= self.horizon:
             self.success[i] = success
             self.on_done()
@@ -277,15 +282,6 @@ class _Rollout:
             EpisodeRecord(task=env.task, seed=seed, success=ok, steps=env.steps, episode_return=ret)
             for env, seed, ok, ret in zip(self.envs, self.seeds, self.success, self.returns, strict=True)
         ]
-
-
-def write_gif(frames: list[np.ndarray], path: Path, fps: int = 25) -> Path:
-    """Write uint8 (H, W, 3) frames as a looping GIF (PIL only; no ffmpeg needed)."""
-    from PIL import Image
-
-    images = [Image.fromarray(frame) for frame in frames]
-    images[0].save(path, save_all=True, append_images=images[1:], duration=1000 // fps, loop=0)
-    return path
 
 
 def evaluate(
@@ -313,27 +309,43 @@ def evaluate(
         for first in range(0, len(episodes), config.batch_size):
             batch = episodes[first : first + config.batch_size]
             envs = [pool.take(task) for task, _ in batch]
-            record = [seed < config.seed_base + config.record_video for _, seed in batch]
-            rollout = _Rollout(envs, [seed for _, seed in batch], record, config.horizon, on_done)
-            rollout.run(action_fn, config.execute_steps)
+            writers = _video_writers(batch, config, video_dir)
+            try:
+                rollout = _Rollout(
+                    envs, [seed for _, seed in batch], config.horizon, on_done, writers, config.video_size
+                )
+                rollout.run(action_fn, config.execute_steps)
+            finally:
+                written = _close_videos(batch, writers)  # also after an error: no ffmpeg left running
             pool.give_back(envs)
             records.extend(rollout.records())
             counters["policy_calls"] += rollout.policy_calls
-            videos.update(_write_videos(rollout, video_dir))
+            videos.update(written)
     finally:
         pool.close()
     return _result(config, records, videos, counters["policy_calls"], time.perf_counter() - start)
 
 
-def _write_videos(rollout: _Rollout, video_dir: str | Path | None) -> dict[str, str]:
-    if not rollout.frames or video_dir is None:
+def _video_writers(
+    batch: list[tuple[str, int]], config: EvalConfig, video_dir: str | Path | None
+) -> dict[int, Mp4Writer]:
+    """Episode (row of the batch) -> the writer of its mp4 in `video_dir`, for the recorded episodes:
+    the first `record_video` seeds of each task."""
+    recorded = [i for i, (_, seed) in enumerate(batch) if seed < config.seed_base + config.record_video]
+    if not recorded or video_dir is None:
         return {}
-    Path(video_dir).mkdir(parents=True, exist_ok=True)
-    videos = {}
-    for i, frames in rollout.frames.items():
-        task, seed = rollout.envs[i].task, rollout.seeds[i]
-        videos[f"{task} seed {seed}"] = str(write_gif(frames, Path(video_dir) / f"{task}-seed{seed}.gif"))
-    return videos
+    folder = Path(video_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    return {i: Mp4Writer(folder / f"{batch[i][0]}-seed{batch[i][1]}{VIDEO_SUFFIX}") for i in recorded}
+
+
+def _close_videos(batch: list[tuple[str, int]], writers: dict[int, Mp4Writer]) -> dict[str, str]:
+    """End the batch's videos; `EvalResult.videos`' entries ("<task> seed <goal seed>" -> path)."""
+    return {
+        f"{batch[i][0]} seed {batch[i][1]}": str(writer.close())
+        for i, writer in writers.items()
+        if writer.frames
+    }
 
 
 def _result(

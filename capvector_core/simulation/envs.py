@@ -215,7 +215,7 @@ class SharedModel:
         self._views: list[np.ndarray] = []
         self._pristine: list[np.ndarray] = []
         self._owner: MetaWorldEnv | None = None
-        self._renderer: FastRenderer | None = None
+        self._renderers: dict[int, FastRenderer] = {}
 
     def new_env(self) -> MetaWorldEnv:
         return MetaWorldEnv(self.config, share=self)
@@ -246,15 +246,16 @@ class SharedModel:
             view[...] = mine
         self._owner = env
 
-    def renderer(self) -> FastRenderer:
-        if self._renderer is None:
-            self._renderer = FastRenderer(self.model, self.config.camera, self.config.image_size)
-        return self._renderer
+    def renderer(self, size: int) -> FastRenderer:
+        """The shared renderer of side `size` (the policy's images, or a video's frames)."""
+        if size not in self._renderers:
+            self._renderers[size] = FastRenderer(self.model, self.config.camera, size)
+        return self._renderers[size]
 
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        for renderer in self._renderers.values():
+            renderer.close()
+        self._renderers = {}
 
 
 class MetaWorldEnv:
@@ -277,7 +278,8 @@ class MetaWorldEnv:
         self.env = _build_env(config.task, share)
         if share is not None:
             self._model_arrays = share.adopt(self)
-        self._renderer: FastRenderer | None = None
+        self._renderer: FastRenderer | None = None  # the policy's images
+        self._video_renderers: dict[int, FastRenderer] = {}  # by side: other sizes (videos)
         self.seed: int | None = None
         self.steps = 0
 
@@ -334,21 +336,30 @@ class MetaWorldEnv:
         parts = [env._get_pos_objects()[:3], env._target_pos, env.tcp_center]
         return np.concatenate(parts).astype(np.float32)
 
-    def render(self) -> np.ndarray:
-        """Upright uint8 (S, S, 3) image from the configured camera (works in both modes, e.g. videos)."""
-        return self._fast_renderer().render(self.env.data)
+    def render(self, size: int | None = None) -> np.ndarray:
+        """Upright uint8 (S, S, 3) image from the configured camera (works in both modes). `size`: S,
+        by default `config.image_size` (what the policy sees); another size (a video's frames) renders
+        with a renderer of its own, so the policy's images stay what they are without it."""
+        return self._fast_renderer(size).render(self.env.data)
 
     def render_rgbd(self) -> tuple[np.ndarray, np.ndarray, PinholeCamera]:
         """`render` plus the depth (metres) and the pinhole camera of the upright view (see FastRenderer)."""
         return self._fast_renderer().render_rgbd(self.env.data)
 
-    def _fast_renderer(self) -> FastRenderer:
+    def _fast_renderer(self, size: int | None = None) -> FastRenderer:
         self._activate()
-        if self._renderer is None and self._share is not None:
-            self._renderer = self._share.renderer()
-        elif self._renderer is None:
-            self._renderer = FastRenderer(self.env.model, self.config.camera, self.config.image_size)
-        return self._renderer
+        if size is None or size == self.config.image_size:
+            if self._renderer is None:
+                self._renderer = self._new_renderer(self.config.image_size)
+            return self._renderer
+        if size not in self._video_renderers:
+            self._video_renderers[size] = self._new_renderer(size)
+        return self._video_renderers[size]
+
+    def _new_renderer(self, size: int) -> FastRenderer:
+        if self._share is not None:
+            return self._share.renderer(size)
+        return FastRenderer(self.env.model, self.config.camera, size)
 
     def _activate(self) -> None:
         if self._share is not None:
@@ -366,9 +377,11 @@ class MetaWorldEnv:
 
     def close(self) -> None:
         """Free the GL context first (avoids EGL errors at interpreter exit), then the simulator."""
-        if self._renderer is not None and self._share is None:  # a shared one is the share's to close
-            self._renderer.close()
-        self._renderer = None
+        if self._share is None:  # shared ones are the share's to close
+            for renderer in [self._renderer, *self._video_renderers.values()]:
+                if renderer is not None:
+                    renderer.close()
+        self._renderer, self._video_renderers = None, {}
         self.env.close()
 
     def __enter__(self) -> MetaWorldEnv:

@@ -20,8 +20,8 @@ result:
   one-env-at-a-time loop gives (tests/test_evaluation.py), and it is not in the protocol fingerprint.
 
 Kept in the key on purpose: `TrainConfig.log_every` (the loss-curve rows and `final_loss` in the
-checkpoint's record depend on it), `EvalConfig.record_video` (it registers video artifacts), every
-seed, and everything else.
+checkpoint's record depend on it), `EvalConfig.record_video` and `EvalConfig.video_size` (they
+register video artifacts), every seed, and everything else.
 
 A field left out of the key is still in the config a step is given and in the record it registers (the
 record of the run that computed the artifact: a later hit asked with another device gets that one).

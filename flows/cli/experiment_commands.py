@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import shlex
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
@@ -278,16 +279,42 @@ def evaluate(
     with run_tags("evaluate"):
         result = flow_fn(resolve_home(home), checkpoints, config.model_dump(mode="json"))
     from capvector.artifacts.scores import read_scores
+    from capvector.tasks.steps.evaluation import video_ids_of
 
-    scores = {s.evaluation_id: s for s in read_scores(workspace(home).api, evaluations=result.values())}
+    ws = workspace(home)
+    scores = {s.evaluation_id: s for s in read_scores(ws.api, evaluations=result.values())}
+    videos = video_ids_of(ws, list(result.values()))
     if as_json:
-        print_json([{"checkpoint": c, "evaluation": e, **scores[e].model_dump()} for c, e in result.items()])
+        print_json(
+            [
+                {"checkpoint": c, "evaluation": e, **scores[e].model_dump(), "videos": _video_rows(videos, e)}
+                for c, e in result.items()
+            ]
+        )
         return
     table = Table("checkpoint", "evaluation", "mean success", "per task")
     for c, e in result.items():
         per_task = ", ".join(f"{t}: {100 * v:.0f}%" for t, v in scores[e].success_rates.items())
         table.add_row(c[:12], e[:12], f"{100 * scores[e].mean_success:.1f}%", per_task)
     console.print(table)
+    _print_videos(videos, home)
+
+
+def _video_rows(videos: dict[str, list[tuple[str, str]]], evaluation: str) -> list[dict[str, str]]:
+    return [{"name": name, "id": video} for name, video in videos.get(evaluation, [])]
+
+
+def _print_videos(videos: dict[str, list[tuple[str, str]]], home: str | None) -> None:
+    """Where `evaluate`'s videos are: one line per video artifact, with the command that copies it out
+    (every video of the evaluations, also ones an earlier run recorded; GIFs before mp4s)."""
+    if not videos:
+        return
+    home_option = f" --home {shlex.quote(home)}" if home else ""
+    typer.echo("videos (evaluation, video name, the command that copies the video here):")
+    for evaluation, found in videos.items():
+        for name, video in found:
+            command = f"capvector artifacts get {video[:12]} -o .{home_option}"
+            typer.echo(f"  {evaluation[:12]}  {name}   {command}")
 
 
 @runner_options("thread")

@@ -190,7 +190,7 @@ class EvalSettings(BaseModel):
         "tested through this camera, which no demonstration was recorded with; null: no such check",
     )
     record_video: int = Field(
-        0, ge=0, description="test episodes per task recorded as GIF videos (artifacts of kind `video`)"
+        0, ge=0, description="test episodes per task recorded as mp4 videos (artifacts of kind `video`)"
     )
 
 

@@ -13,7 +13,8 @@ from capvector.tasks.runtime.workspace import Workspace, provenance
 from capvector.tasks.trained_policy import load_trained_policy
 
 VIDEO_KIND = "video"
-"""A rollout GIF, registered with its evaluation as parent (role `of`)."""
+"""A rollout video, registered with its evaluation as parent (role `of`): an mp4, or a GIF in homes
+written before videos were mp4s (read alike: nothing here opens the file)."""
 
 
 def evaluation_doc(checkpoint_id: str, result: EvalResult, versions: dict[str, Any]) -> dict[str, Any]:
@@ -81,20 +82,29 @@ def evaluate_checkpoint(
     return record.id
 
 
-def videos_of(workspace: Workspace, evaluation_ids: list[str]) -> dict[str, list[tuple[str, str]]]:
-    """Evaluation id -> [(video name, path)] of the rollout videos registered with it."""
+def video_ids_of(workspace: Workspace, evaluation_ids: list[str]) -> dict[str, list[tuple[str, str]]]:
+    """Evaluation id -> [(video name, video artifact id)] of the rollout videos registered with it, by
+    name (every run that recorded some: mp4s, and GIFs recorded before)."""
     if not evaluation_ids:
         return {}
     marks = ", ".join("?" for _ in evaluation_ids)
     _, rows = workspace.api.query_rows(
         f"SELECT e.parent, a.id, a.name FROM edges e JOIN artifacts a ON a.id = e.child "
-        f"WHERE a.kind = '{VIDEO_KIND}' AND e.parent IN ({marks}) ORDER BY a.name",
+        f"WHERE a.kind = '{VIDEO_KIND}' AND e.parent IN ({marks}) ORDER BY a.name, a.created_at",
         list(evaluation_ids),
     )
     found: dict[str, list[tuple[str, str]]] = {}
     for parent, video, name in rows:
-        found.setdefault(parent, []).append((name, str(workspace.api.path(video))))
+        found.setdefault(parent, []).append((name, video))
     return found
+
+
+def videos_of(workspace: Workspace, evaluation_ids: list[str]) -> dict[str, list[tuple[str, str]]]:
+    """Evaluation id -> [(video name, path)] of the rollout videos registered with it."""
+    return {
+        parent: [(name, str(workspace.api.path(video))) for name, video in videos]
+        for parent, videos in video_ids_of(workspace, evaluation_ids).items()
+    }
 
 
 def _register(
