@@ -15,8 +15,8 @@ one short run on a lent GPU:
    (the floor set by non-deterministic CUDA kernels).
 
 Each form is applied as the training step applies it (capvector.tasks.steps.training._train_checkpoint):
-a `TrainStepConfig`, `ADAPTERS[name].apply(model, step_config)` after seeding with the run's seed, the
-form's `extra_losses()`, and its `after_optimizer_step(model)` hook passed to `train`. The data is
+the fields of a `TrainStepConfig`, `ADAPTERS[name].apply(model, step_config)` after seeding with the
+run's seed, the form's `extra_losses()`, and its `after_optimizer_step(model)` hook passed to `train`. The data is
 bench_train_cuda's synthetic DemoDataset, so no Meta-World rollouts (or rendering) are needed. Results are
 written to results/adapters_cuda.{md,json} (or --results); a `--quick` dry run writes them only with
 `--write`.
@@ -37,6 +37,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import torch
@@ -51,7 +52,6 @@ from capvector.core.simulation.demos import DemoDataset
 from capvector.core.training.device import resolve_device, run_environment
 from capvector.core.training.trainer import TrainConfig, train
 from capvector.tasks.adapters import ADAPTERS
-from capvector.tasks.steps.training import TrainStepConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGETS = ["attn.*_proj", "mlp.fc*", "action_head.*"]  # the studies' adapter targets (flows/recipe/config)
@@ -69,6 +69,12 @@ def policy_spec(args) -> dict[str, Any]:
     return {"type": "l1_chunk", "d_model": args.d_model, "n_layers": 4, "n_heads": 4, "chunk_size": 8}
 
 
+class StepConfig(SimpleNamespace):
+    """The fields of the training step's config the adapter registry reads (`train`, `adapter` and the
+    form's section). Not `TrainStepConfig` itself: importing the training step loads Prefect and DuckDB,
+    which the GPU machine lacks; the form's own config validation (AdaLoRA's schedule) still runs."""
+
+
 class Form:
     """One fine-tuning form: its step configs, and whole `train` calls from the shared base weights."""
 
@@ -79,8 +85,8 @@ class Form:
         self.base_params = sum(p.numel() for p in build_policy(self.spec, "cpu").parameters())  # no buffers
         self.runs = 0
 
-    def step_config(self, steps: int, **kw) -> TrainStepConfig:
-        """The training step's config of a run on the device (validated as the step validates it)."""
+    def step_config(self, steps: int, **kw) -> StepConfig:
+        """The training step's config of a run on the device (the adapter's own check runs on it)."""
         train_config = dict(
             steps=steps,
             batch_size=self.args.batch_size,
@@ -90,9 +96,11 @@ class Form:
             device=str(self.device),
             num_threads=self.args.device_threads,
         )
-        return TrainStepConfig(train=TrainConfig(**{**train_config, **kw}), **self.settings)
+        cfg = StepConfig(train=TrainConfig(**{**train_config, **kw}), **self.settings)
+        ADAPTERS[cfg.adapter].check(cfg)
+        return cfg
 
-    def adapted(self, cfg: TrainStepConfig) -> tuple[torch.nn.Module, dict, Any]:
+    def adapted(self, cfg: StepConfig) -> tuple[torch.nn.Module, dict, Any]:
         """The model as the training step makes it: seeded with the run's seed, base weights on the
         device, the form applied; with the form's extra losses and after-step hook."""
         form = ADAPTERS[cfg.adapter]
@@ -106,7 +114,7 @@ class Form:
         self.runs += 1
         return self.work / f"{self.name.replace(' ', '-')}-{self.runs:03d}-{label}"
 
-    def run(self, cfg: TrainStepConfig, label: str, run_dir: Path | None = None, **kw) -> dict:
+    def run(self, cfg: StepConfig, label: str, run_dir: Path | None = None, **kw) -> dict:
         """A whole `train` call: its seconds, result, final weights, trainable parameters and ranks."""
         model, extra, hook = self.adapted(cfg)
         trainable = trainable_parameter_count(model)

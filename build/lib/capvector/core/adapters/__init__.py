@@ -1,0 +1,1 @@
+"""Low-rank adapters: LoRA through peft, and rank-adaptive LoRA-SP."""

@@ -1,0 +1,1 @@
+"""Batched rollouts on Meta-World under a fingerprinted protocol."""

@@ -1,0 +1,1 @@
+"""Meta-World: task names, environments, observation maps, depth targets, expert demos."""

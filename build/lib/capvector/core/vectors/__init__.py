@@ -1,0 +1,1 @@
+"""Checkpoints as safetensors and the capability-vector arithmetic on them."""

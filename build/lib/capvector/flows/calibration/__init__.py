@@ -1,0 +1,1 @@
+"""A calibration before a study: its configuration, plan and flow."""

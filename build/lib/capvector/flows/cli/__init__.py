@@ -1,0 +1,1 @@
+"""The `capvector` command line: one module per command group, and the options they share."""

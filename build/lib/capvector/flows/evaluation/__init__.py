@@ -1,0 +1,1 @@
+"""Scoring checkpoints: the evaluate and reevaluate flows, schedules, protocols by name."""

@@ -1,0 +1,1 @@
+"""The recipe run once: its configuration, plan, flow, sweep and report."""

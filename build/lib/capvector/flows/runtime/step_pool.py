@@ -1,0 +1,35 @@
+"""The process pool the flows run their steps on: Prefect's, minus a head-of-line block.
+
+Prefect's `ProcessPoolTaskRunner` waits for a submitted step's input futures on a thread pool as large
+as its process pool, in submission order. A flow that submits two steps waiting for inputs before a
+step whose inputs are ready therefore leaves the ready one queued, with process workers idle, until an
+input arrives. In a study this serialized the tuning runs of θ_ao's auxiliary weights: the validation
+and held-out-loss steps of the first run held both waiting threads, so the second run started only
+when the first had finished. The same class of hang made Prefect give `ThreadPoolTaskRunner` an
+unbounded pool (PrefectHQ/prefect#14194).
+
+Waiting costs a thread nothing, so `StepPool` gives each waiting step its own (up to
+`WAITING_STEPS`); the process pool still runs at most `max_workers` steps at once.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import Self
+
+from prefect.task_runners import ProcessPoolTaskRunner
+
+WAITING_STEPS = 512
+"""Steps that may wait for their inputs at once (a large study submits a few hundred)."""
+
+
+class StepPool(ProcessPoolTaskRunner):
+    def __enter__(self) -> Self:
+        super().__enter__()
+        narrow = getattr(self, "_resolver_executor", None)
+        if isinstance(narrow, ThreadPoolExecutor):  # prefect versions that resolve inputs in the parent
+            narrow.shutdown(wait=False)
+            self._resolver_executor = ThreadPoolExecutor(
+                max_workers=WAITING_STEPS, thread_name_prefix="step-inputs"
+            )
+        return self

@@ -1,0 +1,1 @@
+"""What every step runs on: the cache, the Prefect task decorator, code hashes, progress, scratch."""
