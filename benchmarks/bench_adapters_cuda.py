@@ -17,9 +17,9 @@ one short run on a lent GPU:
 Each form is applied as the training step applies it (capvector.tasks.steps.training._train_checkpoint):
 the fields of a `TrainStepConfig`, `ADAPTERS[name].apply(model, step_config)` after seeding with the
 run's seed, the form's `extra_losses()`, and its `after_optimizer_step(model)` hook passed to `train`.
-The data is bench_train_cuda's synthetic DemoDataset, so no Meta-World rollouts (or rendering) are needed. Results are
-written to results/adapters_cuda.{md,json} (or --results); a `--quick` dry run writes them only with
-`--write`.
+The data is bench_train_cuda's synthetic DemoDataset, so no Meta-World rollouts (or rendering) are
+needed. Results are written to results/adapters_cuda.{md,json} (or --results); a `--quick` dry run
+writes them only with `--write`.
 
     MUJOCO_GL=disable PYTHONPATH=.:benchmarks python benchmarks/bench_adapters_cuda.py --device cuda
     PYTHONPATH=.:benchmarks python benchmarks/bench_adapters_cuda.py --device cpu --quick   # dry run
