@@ -46,8 +46,9 @@ def test_an_adapter_run_keeps_its_merge_at_each_budget_without_changing_its_trai
     sections = {k: v.model_dump() for k, v in FORMS[form].items()}
     plain = quick(steps=12, lr=1e-2).model_dump(mode="json")
     kept = {**plain, "snapshot_steps": [4, 8]}
-    with_snapshots = run_train(workspace, f"{form} kept", inputs, {"train": kept, "adapter": form, **sections})
-    without = run_train(workspace, f"{form} plain", inputs, {"train": plain, "adapter": form, **sections})
+    step = {"adapter": form, **sections}
+    with_snapshots = run_train(workspace, f"{form} kept", inputs, {"train": kept, **step})
+    without = run_train(workspace, f"{form} plain", inputs, {"train": plain, **step})
     final, other = _tensors(workspace.path(with_snapshots)), _tensors(workspace.path(without))
     assert final.keys() == other.keys()
     for name in final:  # writing snapshots drew nothing from the run's random streams
