@@ -10,6 +10,7 @@ import math
 import statistics
 
 from capvector.artifacts.scores import read_episodes
+from capvector.flows.study.forms_report import forms_section
 from capvector.stats.paired_differences import ENDPOINT, Comparison, CurvePoint
 from capvector.tasks.runtime.workspace import Workspace
 from capvector.tasks.steps.study_analysis import StudyReport
@@ -368,6 +369,7 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         *_preconditions(report),
         *_other_comparisons(report),
         *_heldout_loss(report),
+        *forms_section(workspace, report),
         *_curves(report, speed),
         *_all_comparisons(report),
         *_figures(figures or {}),

@@ -403,8 +403,6 @@ def _curve_rows(path: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-TRAIN = StepKind(
-    "train", TrainStepConfig, ("data",), _train_checkpoint, key_on_model=True
-)
+TRAIN = StepKind("train", TrainStepConfig, ("data",), _train_checkpoint, key_on_model=True)
 run_train = TRAIN.run
 train_task = step_task(TRAIN)
