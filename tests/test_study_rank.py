@@ -112,7 +112,8 @@ def test_the_rank_report_has_a_row_per_arm_with_its_parameters_and_a_png_figure(
     out = tmp_path / "rank.md"
     run_cli("report", ids["report"][:12], "-o", str(out), home=home)
     text = out.read_text()
-    rows = {line.split(" | ")[0].strip("| "): line for line in text.splitlines() if line.startswith("| ")}
+    forms = text.split("## Fine-tuning forms")[1].split("\n## ")[0]
+    rows = {line.split(" | ")[0].strip("| "): line for line in forms.splitlines() if line.startswith("| ")}
     for arm in ["sft", *variants]:
         params = rows[arm].split(" | ")[-3]
         assert int(params.replace(",", "")) > 0, rows[arm]
