@@ -10,14 +10,23 @@ checkpoint holds dense weights). A new form is one class here (peft's
 
 from __future__ import annotations
 
+import copy
+import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
+import torch
 from pydantic import BaseModel
 from torch import nn
 
 from capvector.core.adapters import adalora, lora, lora_sp
+from capvector.core.policies.base import save_policy
+
+SNAPSHOT_ADAPTER = "{stem}.{file}"
+"""A snapshot's adapter files beside its weights (`snapshots/step_00000050.adapter_config.json`): flat
+files, so the run's checkpoint mirror (capvector.tasks.runtime.scratch) copies them with the weights."""
 
 
 class Adapter:
@@ -26,8 +35,8 @@ class Adapter:
     name: ClassVar[str] = "full"
     section: ClassVar[str | None] = None
     """The `TrainStepConfig` field holding this form's settings (None: it needs none)."""
-    snapshots: ClassVar[bool] = True
-    """Whether a run keeps its weights at intermediate budgets (a merged adapter mid-run is not)."""
+    evaluated_as_adapter: ClassVar[bool] = False
+    """Whether its checkpoints are evaluated as `init` + the adapter (their dense merge is approximate)."""
 
     def settings(self, step: Any) -> BaseModel | None:
         return getattr(step, self.section) if self.section else None
@@ -55,13 +64,46 @@ class Adapter:
         """After training: the adapter folder to register (None: none), with the model merged dense."""
         return None
 
+    def snapshot(self, model: nn.Module, path: Path, calibration: Callable[[], list[Any]]) -> None:
+        """The policy kept at a snapshot step, written to `path`: the weights themselves for full
+        fine-tuning; for an adapter, a copy of the model finished as the run will be (merged dense), the
+        training model untouched, and beside it the adapter's files where evaluation runs the adapter."""
+        if self.section is None:
+            save_policy(model, path)
+            return
+        kept = _copy(model)
+        folder = path.parent / f".{path.stem}.adapter"
+        shutil.rmtree(folder, ignore_errors=True)
+        self.finish(kept, folder, calibration, {})
+        if self.evaluated_as_adapter:  # the adapter's files first: the weights file marks the snapshot whole
+            for f in sorted(folder.iterdir()):
+                os.replace(f, path.parent / SNAPSHOT_ADAPTER.format(stem=path.stem, file=f.name))
+        shutil.rmtree(folder, ignore_errors=True)
+        save_policy(kept, path)
+
+
+def _copy(model: nn.Module) -> nn.Module:
+    """A deep copy of a training model: tensors a layer kept from its last forward (LoRA-SP's losses, still
+    in the graph, which deepcopy refuses) are copied detached."""
+    memo: dict[int, Any] = {}
+    for module in model.modules():
+        for value in vars(module).values():
+            for t in value.values() if isinstance(value, dict) else (value,):
+                if isinstance(t, torch.Tensor) and not t.is_leaf:
+                    memo[id(t)] = t.detach()
+    return copy.deepcopy(model, memo)
+
+
+def snapshot_adapter_files(path: Path) -> list[Path]:
+    """The adapter files written beside snapshot `path` (none for full fine-tuning, LoRA, AdaLoRA)."""
+    return sorted(p for p in path.parent.glob(f"{path.stem}.*") if p != path)
+
 
 class LoraAdapter(Adapter):
     """LoRA through peft: saved in peft's layout, then merged into the dense weights."""
 
     name = "lora"
     section = "lora"
-    snapshots = False
 
     def apply(self, model: nn.Module, step: Any) -> None:
         lora.apply_lora(model, step.lora)
@@ -81,6 +123,7 @@ class LoraSPAdapter(LoraAdapter):
 
     name = "lora_sp"
     section = "lora_sp"
+    evaluated_as_adapter = True
 
     def apply(self, model: nn.Module, step: Any) -> None:
         lora_sp.apply_lora_sp(model, step.lora_sp)

@@ -64,6 +64,8 @@ from capvector.core.training.execution import ExecutionOnly, execution_only_fiel
 from capvector.durable import fsync_dir, fsync_files, write_atomic
 
 ExtraLoss = Callable[[nn.Module], torch.Tensor]
+SnapshotWriter = Callable[[Any, Path], Any]
+"""(policy, path) -> writes the policy kept at a snapshot step (default `save_policy`)."""
 _CKPT = re.compile(r"^step_(\d{8})$")
 
 
@@ -265,6 +267,7 @@ class _Run:
         self.step = 0
         self.train_seconds = 0.0
         self.lap_start = 0.0  # when the timed stretch now running began (time.perf_counter)
+        self.write_snapshot: SnapshotWriter = save_policy
 
     def schedule(self, step: int) -> float:
         """Set the learning rate of 0-based `step` (a pure function of it: nothing to resume)."""
@@ -302,9 +305,18 @@ class _Run:
             self.lap()
             curve.write_row(self.step, lr, self.train_seconds)
         if self.step in self.config.snapshot_steps:
-            save_policy(self.policy, snapshot_path(self.run_dir, self.step))
+            self.lap()
+            self.snapshot(self.step)
+            self.lap_start = time.perf_counter()  # writing a snapshot is not a training step's time
         if self.step % self.config.checkpoint_every == 0 or done:
             self.checkpoint(curve, on_checkpoint)
+
+    def snapshot(self, step: int) -> None:
+        """The policy as it stands, kept at `snapshot_path` by the run's writer (an adapter run's writes its
+        merged weights); any randomness the writer draws is not the run's (RNG states forked)."""
+        cuda = [self.device] if torch.device(self.device).type == "cuda" else []
+        with torch.random.fork_rng(devices=cuda):
+            self.write_snapshot(self.policy, snapshot_path(self.run_dir, step))
 
     def lap(self) -> None:
         """Add the time since the last lap to ``train_seconds`` and start the next."""
@@ -454,7 +466,7 @@ class _Run:
             if step > chosen:  # unusable, or past a lost snapshot: recomputed from `chosen`
                 shutil.rmtree(path, ignore_errors=True)
         if chosen in snapshot_at and not snapshot_path(self.run_dir, chosen).is_file():
-            save_policy(self.policy, snapshot_path(self.run_dir, chosen))  # the weights at that step
+            self.snapshot(chosen)  # the weights at that step
         return "; ".join(passed)
 
 
@@ -538,6 +550,7 @@ def train(
     progress: ProgressReport | None = None,
     on_checkpoint: CheckpointHook | None = None,
     after_optimizer_step: StepHook | None = None,
+    snapshot_writer: SnapshotWriter | None = None,
 ) -> TrainResult:
     """Train ``policy`` in place on ``dataset`` (a DemoDataset: ``.tensors``, ``.meta.tasks/.instructions``).
 
@@ -547,6 +560,8 @@ def train(
     timed loop), with ``run_dir/loss_curve.jsonl`` complete up to ``step``.
     ``after_optimizer_step(step)``: called after each optimizer step (0-based `step`, before the next
     step's zero_grad), e.g. AdaLoRA's rank allocation; a `StatefulStepHook`'s state resumes with the run.
+    ``snapshot_writer(policy, path)``: writes the policy kept at each of ``snapshot_steps`` (default
+    `save_policy`; an adapter run's writes its dense merge without touching the training model).
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -555,6 +570,8 @@ def train(
     objective = _objective(policy, dataset, config, extra_losses)
     n, make_batch = _batcher(policy, objective, dataset, config, device)
     run = _Run(policy, objective, dataset, config, run_dir, device, extra_losses, after_optimizer_step)
+    if snapshot_writer is not None:
+        run.write_snapshot = snapshot_writer
 
     curve_path = run_dir / "loss_curve.jsonl"
     passed_over = run.resume(set(config.snapshot_steps), curve_path)

@@ -16,6 +16,7 @@ from pydantic import ConfigDict, Field, NonNegativeInt, model_validator
 from capvector.core.evaluation.rollouts import EvalConfig
 from capvector.core.simulation.demos import UNIT_SEEDS, DemoConfig
 from capvector.flows.recipe.config import LambdaGrid, PipelineConfig, load_config
+from capvector.flows.study.variants import Variant, check_variants, variant_config
 from capvector.tasks.steps.training import TrainStepConfig
 
 StudyArm = Literal[
@@ -80,52 +81,88 @@ class StudySettings(LambdaGrid):
         gate: run the arms that test the preconditions (SFT, auxiliary SFT, SFT from θ_ao and from θ_ft)
             first and the CapVector arms only when (c) and (c′) hold with intervals above 0; otherwise the
             report says the question is untestable on this testbed.
+        variants: named arms from θ_pt with config overrides (`set`, the `--set` syntax) and their own lr
+            grid, each chosen on validation goals at the tuning seeds; shared arms like `sft`, compared
+            against it (flows/study/variants.py). A study of `sft` and variants only needs no γ: it runs
+            no extraction stage and no gate.
+        sft_lrs: full fine-tuning's lr grid, chosen like a variant's; empty: `downstream.lr`.
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    variants: dict[str, Variant] = Field(default_factory=dict)
+    sft_lrs: list[float] = Field(default_factory=list)
     draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
     draws_per_replicate: int = Field(1, ge=1)
     tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001], min_length=1)
     tuning_vector_draws: list[NonNegativeInt] = Field(default_factory=list)
-    extraction_lrs: list[float] = Field(min_length=1)
-    extraction_aux_weights: list[float] = Field(min_length=1)
+    extraction_lrs: list[float] = Field(default_factory=list)
+    extraction_aux_weights: list[float] = Field(default_factory=list)
     heldout_episodes: int = Field(5, ge=1)
     flat_tolerance: float = Field(0.05, gt=0, lt=1)
     non_inferiority_margin: float = Field(5.0, gt=0)
     alphas: list[float] = Field(default_factory=lambda: [0.5, 1.0, 1.5, 2.0], min_length=1)
     dose_alpha: float | None = Field(None, gt=0)
-    aux_weights: list[float] = Field(min_length=1)
+    aux_weights: list[float] = Field(default_factory=list)
     budgets: list[int] = Field(min_length=1)
     arms: list[StudyArm] = Field(default_factory=lambda: list(ALL_ARMS))
     n_boot: int = Field(2000, ge=100)
     gate: bool = True
 
+    @property
+    def needs_gamma(self) -> bool:
+        """Whether an arm depends on γ (anything but `sft`, `aux` and the variants, all from θ_pt): only
+        then do the extraction stage, the γ draws and the gate run."""
+        return any(arm not in SHARED_ARMS for arm in self.arms)
+
+    def _grids_and_arms(self) -> None:
+        """Every grid has distinct (and, for lrs and weights, positive) values; `sft` is an arm."""
+        grids = ("draws", "tuning_seeds", "tuning_vector_draws", "alphas", "lambdas_relative", "sft_lrs")
+        grids += ("lambdas_absolute", "aux_weights", "extraction_lrs", "extraction_aux_weights", "budgets")
+        for name in grids:
+            values = getattr(self, name)
+            if len(set(values)) != len(values):
+                raise ValueError(f"study.{name} has repeated values: {values}")
+        positive = ("extraction_lrs", "aux_weights", "extraction_aux_weights", "sft_lrs")
+        bad = [name for name in positive if any(x <= 0 for x in getattr(self, name))]
+        if bad:
+            raise ValueError(f"study.{', study.'.join(bad)} must be positive")
+        if "sft" not in self.arms:
+            raise ValueError("study.arms must include sft: every comparison is against it")
+        twice = sorted({arm for arm in self.arms if self.arms.count(arm) > 1})
+        if twice:
+            raise ValueError(f"study.arms lists {', '.join(twice)} more than once: each arm is run once")
+        clash = sorted(set(self.variants) & set(ALL_ARMS + ("meta_sft_dose",)))
+        if clash:
+            raise ValueError(f"study.variants {clash} are named like a study arm: give them names of theirs")
+
     @model_validator(mode="after")
     def _design(self) -> StudySettings:
+        self._grids_and_arms()
+        if not self.needs_gamma:
+            if self.gate:
+                raise ValueError(
+                    f"study.gate is true but study.arms {self.arms} need no γ: the gate tests preconditions "
+                    "of γ's arms; set study.gate: false"
+                )
+            if not self.variants:
+                raise ValueError("study.arms need no γ and study.variants is empty: nothing to compare")
+            if "aux" in self.arms and not self.aux_weights:
+                raise ValueError("study.aux_weights is empty: the aux arm's weight is chosen from it")
+            return self
+        for name in ("extraction_lrs", "extraction_aux_weights", "aux_weights"):
+            if not getattr(self, name):
+                raise ValueError(f"study.{name} is empty: a study with γ's arms chooses from it")
         cells = len(self.alphas) * max(1, len(self.lambdas_relative) + len(self.lambdas_absolute))
         if len(self.aux_weights) != cells:
             raise ValueError(
                 f"study.aux_weights has {len(self.aux_weights)} values, the α × λ grid {cells} cells: "
                 "the auxiliary arm is tuned on the same budget as CapVector"
             )
-        grids = ("draws", "tuning_seeds", "tuning_vector_draws", "alphas", "lambdas_relative")
-        grids += ("lambdas_absolute", "aux_weights", "extraction_lrs", "extraction_aux_weights", "budgets")
-        for name in grids:
-            values = getattr(self, name)
-            if len(set(values)) != len(values):
-                raise ValueError(f"study.{name} has repeated values: {values}")
-        positive = ("extraction_lrs", "aux_weights", "extraction_aux_weights")
-        bad = [name for name in positive if any(x <= 0 for x in getattr(self, name))]
-        if bad:
-            raise ValueError(f"study.{', study.'.join(bad)} must be positive")
         if len(self.draws) % self.draws_per_replicate:
             raise ValueError(
                 f"study.draws ({len(self.draws)}) must split into replicates of study.draws_per_replicate "
                 f"({self.draws_per_replicate}) draws"
             )
-        twice = sorted({arm for arm in self.arms if self.arms.count(arm) > 1})
-        if twice:
-            raise ValueError(f"study.arms lists {', '.join(twice)} more than once: each arm is run once")
         if ("meta_sft_dose" in self.arms) != (self.dose_alpha is not None):
             raise ValueError("study.dose_alpha and the arm meta_sft_dose go together: set both or neither")
         shared = sorted(set(self.tuning_vector_draws) & set(self.draws))
@@ -133,7 +170,10 @@ class StudySettings(LambdaGrid):
             raise ValueError(f"study.tuning_vector_draws {shared} are also compared draws")
         missing = {"sft", "capvector"} - set(self.arms)
         if missing:
-            raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")
+            raise ValueError(
+                f"study.arms must include {sorted(missing)}: every comparison is against them (a study of "
+                "fine-tuning forms lists sft and study.variants only)"
+            )
         if self.gate:
             lacking = sorted(set(GATE_ARMS) - set(self.arms))
             if lacking:
@@ -158,7 +198,8 @@ class StudyConfig(PipelineConfig):
                 f"extraction.steps ({self.extraction.steps}) must be at least 4: the convergence check "
                 "reads the held-out loss at half and three quarters of the run"
             )
-        compared = set(self.seeds) | set(self.study.draws)
+        check_variants(self.study.variants, self.model_dump(mode="json"))
+        compared = set(self.seeds) | (set(self.study.draws) if self.study.needs_gamma else set())
         clash = sorted(set(self.study.tuning_seeds) & compared)
         if clash:
             raise ValueError(f"study.tuning_seeds {clash} are also compared seeds or draws")
@@ -226,6 +267,21 @@ class StudyConfig(PipelineConfig):
         step = self.downstream_step(arm, seed, lam, aux_weight)
         train = step.train.model_copy(update={"snapshot_steps": self.curve_budgets[:-1]})
         return step.model_copy(update={"train": train})
+
+    def variant_downstream(self, name: str, seed: int, lr: float) -> TrainStepConfig:
+        """Variant `name`'s run at `seed` and `lr`: its arm under its overrides, with the curve's budgets."""
+        variant = self.study.variants[name]
+        cfg = variant_config(self.model_dump(mode="json"), name, variant)
+        step = cfg.downstream_step(variant.arm, seed)
+        train = step.train.model_copy(update={"lr": lr, "snapshot_steps": self.curve_budgets[:-1]})
+        return step.model_copy(update={"train": train})
+
+    def sft_downstream(self, seed: int, lr: float | None = None) -> TrainStepConfig:
+        """Full fine-tuning's run at `seed`, at `lr` when a grid chose one (else `downstream.lr`)."""
+        step = self.study_downstream("sft", seed)
+        if lr is None:
+            return step
+        return step.model_copy(update={"train": step.train.model_copy(update={"lr": lr})})
 
     def extraction_validation(self) -> EvalConfig:
         """D_ext's validation goals: the extraction lr and preconditions (b), (d) are judged there."""

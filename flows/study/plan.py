@@ -95,9 +95,11 @@ def after_gate(steps: Any, more: int) -> None:
             emit(f"[{steps.label}] gate passed: {more} more steps, {steps.total} in all")
 
 
-def _start_kind(arm: str) -> str:
-    """Which checkpoint an arm's run starts from (runs starting alike share their budget-0 test)."""
-    return ARMS[arm].init
+def _start_kind(cfg: StudyConfig, arm: str) -> str:
+    """Which checkpoint an arm's run starts from (runs starting alike share their budget-0 test); a
+    variant starts where its arm does."""
+    variant = cfg.study.variants.get(arm)
+    return ARMS[variant.arm if variant else arm].init
 
 
 class _Study:
@@ -182,7 +184,7 @@ class _Study:
 
     def test_start(self, checkpoint: Any, arm: str, draw: int, what: str) -> None:
         """Budget 0: the checkpoint a run starts from, tested once and counted for every seed."""
-        key = (_start_kind(arm), draw)
+        key = (_start_kind(self.cfg, arm), draw)
         if key not in self._started:
             self._started[key] = self.submit(
                 evaluate_task, f"test {what} @ 0", {"checkpoint": checkpoint}, self.test
@@ -263,9 +265,7 @@ def _extraction(study: _Study, data: dict[str, Any], pretrained: Any) -> dict[st
         "extraction lr", [({"lr": v}, e) for v, e in cells], {"run": "θ_ft", "seeds": tunes}, losses
     )
     lr = study.chosen(lr_selection)["lr"]
-    ao_configs = {
-        w: {t: cfg.extraction_run(True, t, lr, w) for t in tunes} for w in s.extraction_aux_weights
-    }
+    ao_configs = {w: {t: cfg.extraction_run(True, t, lr, w) for t in tunes} for w in s.extraction_aux_weights}
     ao_runs, cells, losses = grid("θ_ao aux weight", ao_configs, {"selection": lr_selection})
     weight_selection = study.select(
         "extraction auxiliary weight",
@@ -358,23 +358,82 @@ def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: A
 
 
 def _foundations(study: _Study) -> dict[str, Any]:
-    """Demonstrations and θ_pt: what every run starts from (`data`, `pretrained`)."""
-    cfg, submit = study.cfg, study.submit
-    data = {
-        split: submit(collect_demos_task, f"demos {split}", {}, cfg.demo_config(split))
-        for split in ("pretrain", "extraction", "downstream")
-    }
-    data["heldout"] = submit(collect_demos_task, "demos extraction (held out)", {}, cfg.heldout_demo_config())
+    """Demonstrations and θ_pt: what every run starts from (`data`, `pretrained`); D_ext's demos and θ_pt's
+    D_ext validation only where an arm needs γ."""
+    cfg, submit, gamma = study.cfg, study.submit, study.cfg.study.needs_gamma
+    splits = ("pretrain", "extraction", "downstream") if gamma else ("pretrain", "downstream")
+    data = {s: submit(collect_demos_task, f"demos {s}", {}, cfg.demo_config(s)) for s in splits}
+    if gamma:
+        held_out = cfg.heldout_demo_config()
+        data["heldout"] = submit(collect_demos_task, "demos extraction (held out)", {}, held_out)
     study.heldout_downstream = submit(
         collect_demos_task, "demos downstream (held out)", {}, cfg.downstream_heldout_demo_config()
     )
     pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
-    pt_validation = submit(
-        evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
-    )
-    study.record(ExtractionValidation(which="pt", draw=SHARED), pt_validation)
+    if gamma:
+        validation = submit(
+            evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
+        )
+        study.record(ExtractionValidation(which="pt", draw=SHARED), validation)
     study.record(Pretrained(), pretrained)
     return {"data": data, "pretrained": pretrained}
+
+
+def _lr_grids(study: _Study, base: dict[str, Any]) -> dict[str, list[tuple[float, list[Any]]]]:
+    """Arm -> [(lr, its tuning run at each tuning seed)]: full fine-tuning's (with `study.sft_lrs`) and
+    every variant's, submitted at once (each is chosen later, at the endpoint, on validation goals)."""
+    s, tunes = study.cfg.study, study.cfg.study.tuning_seeds
+    lrs = ({"sft": s.sft_lrs} if s.sft_lrs else {}) | {name: v.lrs for name, v in s.variants.items()}
+    return {
+        name: [
+            (
+                lr,
+                [
+                    _shared_run(study, base, name, t, lr, _seeded(f"tune {name} lr={lr:g}", t, tunes))
+                    for t in tunes
+                ],
+            )
+            for lr in grid
+        ]
+        for name, grid in lrs.items()
+    }
+
+
+def _shared_run(
+    study: _Study, base: dict[str, Any], name: str, seed: int, lr: float, label: str, selection: Any = None
+) -> Any:
+    """A run of full fine-tuning (`sft`) or of a variant at `seed` and `lr`."""
+    cfg = study.cfg
+    variant = cfg.study.variants.get(name)
+    step = cfg.variant_downstream(name, seed, lr) if variant else cfg.sft_downstream(seed, lr)
+    arm = variant.arm if variant else name
+    return submit_arm(study.steps, base, arm, seed, step, label=label, selection=selection)
+
+
+def _shared_runs(
+    study: _Study, base: dict[str, Any], grids: dict[str, list], runs: dict, chosen_values: dict
+) -> None:
+    """Each lr grid's choice (validation goals, tuning seeds, the endpoint), then that arm's compared run
+    at every seed with the selection as its input: full fine-tuning (when it has a grid) and each variant."""
+    cfg, tunes = study.cfg, study.cfg.study.tuning_seeds
+    for name, grid in grids.items():
+        cells = [
+            (
+                {"lr": lr},
+                [
+                    e
+                    for t, run in zip(tunes, tuning_runs, strict=True)
+                    for e in study.validate_curve(run, _seeded(f"{name} lr={lr:g}", t, tunes))
+                ],
+            )
+            for lr, tuning_runs in grid
+        ]
+        context = {"arm": name, "seeds": tunes, "endpoint": cfg.curve_budgets}
+        selection = study.select(f"{name} lr", cells, context)
+        lr = chosen_values[f"{name}_lr"] = study.chosen(selection)["lr"]
+        for seed in cfg.seeds:
+            label = f"downstream {name} seed {seed}"
+            runs[name, SHARED, seed] = _shared_run(study, base, name, seed, lr, label, selection)
 
 
 def _aux_grid(study: _Study, base: dict[str, Any]) -> list[tuple[float, list[Any]]]:
@@ -529,17 +588,32 @@ def _capvector_arms(
     return rest
 
 
+def _shared_study(study: _Study, base: dict[str, Any], grids: dict, aux_grid: list, runs: dict) -> dict:
+    """A study whose arms need no γ (sft, aux, the variants): no extraction, no gate; every choice, the
+    compared runs, their tests and the analysis."""
+    chosen_values: dict[str, float] = {}
+    if aux_grid:
+        _aux_runs(study, base, aux_grid, runs, chosen_values)
+    _shared_runs(study, base, grids, runs, chosen_values)
+    study.test_runs(runs)
+    report = study.analyse("final", _design(study.cfg, chosen_values))
+    return {"report": report, "selections": _selections(study)}
+
+
 def _run_study(study: _Study) -> dict[str, Any]:
     """The study in order: the gate's arms, the gate, then CapVector's α × λ and arms (see the module)."""
     cfg, s = study.cfg, study.cfg.study
     base = _foundations(study)
     runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
-    for seed in cfg.seeds:
+    grids = _lr_grids(study, base)
+    for seed in cfg.seeds if "sft" not in grids else ():  # without a grid, at once
         step = cfg.study_downstream("sft", seed)
         runs["sft", SHARED, seed] = submit_arm(study.steps, base, "sft", seed, step)
     aux_grid = _aux_grid(study, base)
-    for arm in [a for a in SHARED_ARMS if a in s.arms]:
+    for arm in [a for a in SHARED_ARMS if a in s.arms] + list(s.variants):
         study.test_start(base["pretrained"], arm, SHARED, "θ_pt")
+    if not s.needs_gamma:
+        return _shared_study(study, base, grids, aux_grid, runs)
 
     extraction = _extraction(study, base["data"], base["pretrained"])
     draws = {d: _draw(study, d, base, extraction) for d in s.draws}
@@ -547,8 +621,9 @@ def _run_study(study: _Study) -> dict[str, Any]:
     chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
     if aux_grid:
         _aux_runs(study, base, aux_grid, runs, chosen_values)
+    _shared_runs(study, base, grids, runs, chosen_values)
     _gate_arms(study, units, runs)
-    study.test_runs({k: v for k, v in runs.items() if k[0] in GATE_ARMS})
+    study.test_runs({k: v for k, v in runs.items() if k[0] in GATE_ARMS or k[0] in s.variants})
     _held_out_losses(study, draws, base["data"]["heldout"])
     if s.gate:
         gate_report = study.analyse("gate", _design(cfg, chosen_values))
@@ -578,8 +653,9 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
     s = cfg.study
     return {
         "name": cfg.name,
-        "arms": list(s.arms),
-        "draws": list(s.draws),
+        "arms": [*s.arms, *s.variants],
+        "variants": {name: v.model_dump(mode="json") for name, v in s.variants.items()},
+        "draws": list(s.draws) if s.needs_gamma else [],
         "seeds": list(cfg.seeds),
         "endpoint_budgets": cfg.curve_budgets,
         "final_budget": cfg.downstream.steps,
@@ -597,6 +673,8 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
             "alpha": list(s.alphas),
             "lambda_relative": list(s.lambdas_relative),
             "lambda_absolute": list(s.lambdas_absolute),
+            **({"sft_lr": list(s.sft_lrs)} if s.sft_lrs else {}),
+            **{f"{name}_lr": list(v.lrs) for name, v in s.variants.items()},
         },
     }
 

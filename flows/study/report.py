@@ -10,6 +10,7 @@ import math
 import statistics
 
 from capvector.artifacts.scores import read_episodes
+from capvector.flows.study.forms_report import forms_section
 from capvector.stats.paired_differences import ENDPOINT, Comparison, CurvePoint
 from capvector.tasks.runtime.workspace import Workspace
 from capvector.tasks.steps.study_analysis import StudyReport
@@ -198,10 +199,15 @@ def _design(report: StudyReport) -> list[str]:
     d = report.design
     final = d.final_budget
     budgets = ", ".join(str(b) for b in d.endpoint_budgets)
+    units = (
+        f"{len(d.draws)} γ draw(s){_replicates(d.draws, d.draws_per_replicate)} × "
+        if d.draws
+        else f"no γ (arms from θ_pt: {', '.join(d.arms)}; no extraction, no gate) × "
+    )
     return [
         f"# Study `{d.name}`",
         "",
-        f"Design: {len(d.draws)} γ draw(s){_replicates(d.draws, d.draws_per_replicate)} × {len(d.seeds)} "
+        f"Design: {units}{len(d.seeds)} "
         f"training seed(s); {report.goals_per_task} test "
         f"goals per task × {len(report.tasks)} tasks ({', '.join(report.tasks)}), the same goals for every "
         f"checkpoint. Primary endpoint (declared in the preset): **mean success over {budgets} downstream "
@@ -241,6 +247,8 @@ def _headline(report: StudyReport) -> list[str]:
 
 def _preconditions(report: StudyReport) -> list[str]:
     """Each precondition's outcome, so a headline is read only where what it rests on holds."""
+    if not report.preconditions:  # a study whose arms need no γ
+        return []
     lines = ["", "## Preconditions", "", "| | claim | outcome | evidence |", "|---|---|---|---|"]
     for p in report.preconditions:
         outcome = VERDICT[p.holds] if p.measured else "not measured"
@@ -250,6 +258,8 @@ def _preconditions(report: StudyReport) -> list[str]:
 
 def _other_comparisons(report: StudyReport) -> list[str]:
     """The comparisons that locate the effect (where SFT starts from, the orthogonal loss)."""
+    if not report.design.draws:  # a study whose arms need no γ: its comparisons are the forms section's
+        return []
     final = report.design.final_budget
     lines = ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
     others = (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("sft_from_ao", "sft"), ("meta_sft", "sft"))
@@ -368,6 +378,7 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         *_preconditions(report),
         *_other_comparisons(report),
         *_heldout_loss(report),
+        *forms_section(workspace, report),
         *_curves(report, speed),
         *_all_comparisons(report),
         *_figures(figures or {}),

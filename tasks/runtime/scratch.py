@@ -14,7 +14,8 @@ Layout of one run's folder::
 
     step_XXXXXXXX/{policy.safetensors, aux.safetensors, trainer_state.pt, train_config.json,
                    loss_curve.jsonl}       the newest checkpoint and the loss curve up to it
-    snapshots/step_XXXXXXXX.safetensors  the kept snapshots up to it (each written once)
+    snapshots/step_XXXXXXXX.safetensors  the kept snapshots up to it (each written once; with a LoRA-SP
+                                         run's adapter files beside each, step_XXXXXXXX.adapter_*)
     checkpoint.json                       {"step", "files": {path: size}}: written last
 
 A reader never takes a half-written checkpoint for a whole one: the files go first, `checkpoint.json`
@@ -111,8 +112,8 @@ class CheckpointMirror:
         self._put(run_dir / CURVE, f"{name}/{CURVE}")  # flushed up to `step` before the hook
         files[f"{name}/{CURVE}"] = (run_dir / CURVE).stat().st_size
         sent = (previous or {}).get("files", {})
-        for snap in sorted((run_dir / "snapshots").glob("step_*.safetensors")):
-            if int(snap.stem[5:]) > step:
+        for snap in sorted((run_dir / "snapshots").glob("step_*")):  # weights, and a LoRA-SP run's adapter
+            if not snap.is_file() or int(snap.name[5:13]) > step:
                 continue
             rel = f"snapshots/{snap.name}"
             size = snap.stat().st_size

@@ -40,6 +40,7 @@ from capvector.stats.paired_differences import (
 from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
 from capvector.tasks.runtime.workspace import Workspace, provenance
 from capvector.tasks.steps.held_out_loss import measured_loss
+from capvector.tasks.steps.study_forms import RankSpread, endpoints, rank_spreads
 from capvector.tasks.study_inputs import (
     CapabilityVector,
     DownstreamLoss,
@@ -66,6 +67,14 @@ COMPARED = (  # (arm, baseline): the report's headline, then the controls
     ("meta_sft_dose", "sft"),
     ("meta_sft_dose", "meta_sft"),
 )
+
+
+def compared_pairs(design: StudyDesign) -> tuple[tuple[str, str], ...]:
+    """Every (arm, baseline) the study compares: the fixed ones, then each variant against full
+    fine-tuning (`sft`)."""
+    return COMPARED + tuple((name, "sft") for name in design.variants)
+
+
 GATING = ("c", "c_prime")
 """The preconditions CapVector's arms wait for. (b) is reported, not gating: on the calibrated testbeds
 θ_ft sits at the D_ext ceiling (88–98 %), where (b) cannot show a difference that (c′) downstream can."""
@@ -77,7 +86,10 @@ class StudyDesign(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str
     arms: list[str]
+    variants: dict[str, dict[str, Any]] = {}
+    """Variant name -> its declaration (`arm`, `set`, `lrs`): arms from θ_pt compared against `sft`."""
     draws: list[int]
+    """The γ draws; empty for a study whose arms need no γ."""
     seeds: list[int]
     endpoint_budgets: list[int]
     """The primary endpoint: mean success over these budgets (the final one included)."""
@@ -172,6 +184,10 @@ class StudyReport(BaseModel):
     """Arm -> each run's success at each budget (the points beside the curves' means)."""
     final_checkpoints: dict[str, list[str]]
     """Arm -> its runs' final checkpoints (where the rendered report reads time per step)."""
+    endpoints: dict[str, CurvePoint] = {}
+    """Arm -> its mean success at the primary endpoint with a 95 % interval."""
+    rank_spread: list[RankSpread] = []
+    """With variants: each form's best − worst variant at the endpoint (capvector.tasks.steps.study_forms)."""
     designs_for_5_points: dict[str, Design | None]
     """`arm-baseline` -> the cheapest design, at least as large as this one and never under 2 draws × 2
     seeds, whose MDD at the primary endpoint would be ≤ 5 points, sized from this study's variance
@@ -500,9 +516,10 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
     comparisons = [
         c
         for budget in (ENDPOINT, design.final_budget)
-        for arm, baseline in COMPARED
+        for arm, baseline in compared_pairs(design)
         if (c := _compare(episodes, arm, baseline, budget, design.n_boot)) is not None
     ]
+    means = endpoints(episodes, design.arms, design.n_boot)
     curves = {
         arm: success_curve(episodes, arm, budgets=[int(b) for b in budgets], n_boot=design.n_boot)
         for arm in design.arms
@@ -510,12 +527,10 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
     }
     convergence = _convergence(workspace, inputs, design)
     goals = episodes.groupby("task")["goal"].nunique()
-    final = {e for k, e in tests if k["budget"] == design.final_budget}
-    by_arm: dict[str, list[str]] = {}
-    for scores in read_scores(workspace.api, evaluations=sorted(final)):
-        arm = next(k["arm"] for k, e in tests if e == scores.evaluation_id)
-        by_arm.setdefault(arm, []).append(scores.checkpoint_id)
-    preconditions = _preconditions(workspace, inputs, design, episodes_ext, comparisons, convergence)
+    by_arm = _final_checkpoints(workspace, tests, design.final_budget)
+    preconditions = []  # a study of fine-tuning forms only (no γ) has none
+    if design.draws:
+        preconditions = _preconditions(workspace, inputs, design, episodes_ext, comparisons, convergence)
     return StudyReport(
         design=design,
         gate=_gate_verdict(design, preconditions),
@@ -526,7 +541,9 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         curves=curves,
         selections={k.name: sel for k, sel in inputs_of(inputs, Selection)},
         convergence=convergence,
-        heldout_loss=_heldout_loss(workspace, inputs),
+        heldout_loss=_heldout_loss(workspace, inputs, compared_pairs(design)),
+        endpoints=means,
+        rank_spread=rank_spreads(episodes, design.variants, means, design.n_boot),
         per_task={
             arm: {task: 100 * float(v) for task, v in rows.groupby("task")["success"].mean().items()}
             for arm, rows in episodes[episodes["budget"] == ENDPOINT].groupby("arm")
@@ -553,12 +570,26 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
     )
 
 
-def _heldout_loss(workspace: Workspace, inputs: dict[str, str]) -> list[LossComparison]:
+def _final_checkpoints(
+    workspace: Workspace, tests: list[tuple[dict[str, Any], str]], final_budget: int
+) -> dict[str, list[str]]:
+    """Arm -> the checkpoints its final test evaluations ran."""
+    final = {e for k, e in tests if k["budget"] == final_budget}
+    by_arm: dict[str, list[str]] = {}
+    for scores in read_scores(workspace.api, evaluations=sorted(final)):
+        arm = next(k["arm"] for k, e in tests if e == scores.evaluation_id)
+        by_arm.setdefault(arm, []).append(scores.checkpoint_id)
+    return by_arm
+
+
+def _heldout_loss(
+    workspace: Workspace, inputs: dict[str, str], compared: tuple[tuple[str, str], ...]
+) -> list[LossComparison]:
     losses = {
         (k.arm, k.draw, k.seed): measured_loss(workspace, m) for k, m in inputs_of(inputs, DownstreamLoss)
     }
     out = []
-    for arm, baseline in COMPARED:
+    for arm, baseline in compared:
         pairs = []
         for (a, d, s), value in losses.items():
             if a != arm:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import json
+import shutil
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -34,7 +35,7 @@ from capvector.core.policies.base import AnyPolicyConfig, Policy, build_policy, 
 from capvector.core.simulation.demos import DemoDataset
 from capvector.core.training.orthogonal import OrthogonalRegularizer
 from capvector.core.training.trainer import StepHook, TrainConfig, TrainResult, train
-from capvector.tasks.adapters import ADAPTERS
+from capvector.tasks.adapters import ADAPTERS, snapshot_adapter_files
 from capvector.tasks.runtime.caching import selected_by
 from capvector.tasks.runtime.progress import progress_printer
 from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
@@ -193,11 +194,6 @@ def _calibration_batches(
     ]
 
 
-def _adapter_keeps_snapshots(step: str, inputs: dict[str, str], cfg: TrainStepConfig) -> None:
-    if cfg.train.snapshot_steps and not ADAPTERS[cfg.adapter].snapshots:
-        raise ValueError(f"step {step!r}: train.snapshot_steps needs full fine-tuning (adapter 'full')")
-
-
 def _train_checkpoint(call: StepCall) -> str:
     """Train, then register the checkpoint; the run folder is kept until the checkpoint is committed."""
     workspace, step, inputs, cfg, key = call.workspace, call.step, call.inputs, call.config, call.key
@@ -258,6 +254,8 @@ def _train_resumable(
     (AdaLoRA's rank allocation), or None."""
     run_dir = workspace.run_dir(key)
     mirror = workspace.checkpoint_mirror(key)
+    calibration = functools.partial(_calibration_batches, model, dataset, cfg.train.seed)
+    writer = functools.partial(ADAPTERS[cfg.adapter].snapshot, calibration=calibration)
     on_checkpoint = None
     if mirror is not None:
         mirror.restore(run_dir)
@@ -271,6 +269,7 @@ def _train_resumable(
         progress=progress_printer(step, "steps"),
         on_checkpoint=on_checkpoint,
         after_optimizer_step=after_optimizer_step,
+        snapshot_writer=writer,
     )
 
 
@@ -293,6 +292,7 @@ def _register_checkpoint(
         weights = save_policy(model, tmp / "model.safetensors", {"capvector.step": step})
         parents = _input_parents(inputs)
         meta = provenance()
+        snapshots = _register_snapshots(workspace, step, cfg, key, result, parents, meta)
         if adapter_dir is not None:
             adapter = workspace.api.register_dir(
                 adapter_dir,
@@ -303,7 +303,6 @@ def _register_checkpoint(
                 **meta,
             )
             parents.append((adapter.id, "adapter"))
-        snapshots = _register_snapshots(workspace, step, cfg, key, result, parents, meta)
         record_config = {
             "train_step": cfg.model_dump(mode="json"),
             "cache_key": key,
@@ -338,9 +337,12 @@ def _register_snapshots(
     parents: list[tuple[Any, ...]],
     meta: dict[str, Any],
 ) -> dict[str, str]:
-    """Budget -> id of each checkpoint kept on the way, registered before the final one, which names them."""
+    """Budget -> id of each checkpoint kept on the way, registered before the final one, which names them;
+    a snapshot with adapter files beside it (LoRA-SP: evaluated as `init` + adapter) has its own adapter
+    artifact as its parent `adapter`."""
     snapshots = {}
     for budget, path in result.snapshots.items():
+        own = _snapshot_adapter(workspace, step, cfg, budget, path, parents, meta)
         snapshot = workspace.api.register_file(
             path,
             kind="checkpoint",
@@ -351,11 +353,41 @@ def _register_snapshots(
                 "of_run": key,
                 "execution": result.execution,
             },
-            parents=parents,
+            parents=parents + own,
             **meta,
         )
         snapshots[str(budget)] = snapshot.id
     return snapshots
+
+
+def _snapshot_adapter(
+    workspace: Workspace,
+    step: str,
+    cfg: TrainStepConfig,
+    budget: int,
+    path: Path,
+    parents: list[tuple[Any, ...]],
+    meta: dict[str, Any],
+) -> list[tuple[Any, ...]]:
+    """The adapter a snapshot was kept with (`tasks.adapters.snapshot_adapter_files`), registered; [(id,
+    "adapter")], or [] when it has none."""
+    files = snapshot_adapter_files(path)
+    if not files:
+        return []
+    with workspace.scratch() as tmp:
+        folder = tmp / "adapter"
+        folder.mkdir()
+        for f in files:
+            shutil.copyfile(f, folder / f.name.removeprefix(f"{path.stem}."))
+        adapter = workspace.api.register_dir(
+            folder,
+            kind="adapter",
+            name=f"{step} @ {budget} steps adapter",
+            config={"adapter": cfg.adapter, "budget": budget},
+            parents=parents,
+            **meta,
+        )
+    return [(adapter.id, "adapter")]
 
 
 def snapshots_of(workspace: Workspace, checkpoint_id: str) -> dict[int, str]:
@@ -371,8 +403,6 @@ def _curve_rows(path: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-TRAIN = StepKind(
-    "train", TrainStepConfig, ("data",), _train_checkpoint, check=_adapter_keeps_snapshots, key_on_model=True
-)
+TRAIN = StepKind("train", TrainStepConfig, ("data",), _train_checkpoint, key_on_model=True)
 run_train = TRAIN.run
 train_task = step_task(TRAIN)
