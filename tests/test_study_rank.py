@@ -8,12 +8,12 @@ import re
 from pathlib import Path
 
 import pytest
+from conftest import run_cli
 
 from capvector.flows.study.config import load_study
 from capvector.flows.study.plan import study_plan, study_steps
 from capvector.tasks.runtime.workspace import Workspace
 from capvector.tasks.steps.study_analysis import StudyReport
-from tests.conftest import run_cli
 
 SMOKE = "study-rank-smoke"
 R16 = {"arm": "sft_lora", "set": {"lora.r": 16, "lora.alpha": 32}, "lrs": [1.0e-3, 3.0e-3]}
@@ -122,6 +122,7 @@ def test_the_rank_report_has_a_row_per_arm_with_its_parameters_and_a_png_figure(
     )
     assert re.search(r"attn \d", rows["lora_sp_b4"]) and rows["lora_r2"].endswith("| — |")
     assert "Robust to rank" in text
+    assert re.search(r"\| lora_sp_b8 − lora_r8 \| [+-]\d+\.\d \[", text)  # a declared comparison
     assert (out.parent / "rank_forms.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "(rank_forms.png)" in text
 

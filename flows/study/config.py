@@ -86,11 +86,14 @@ class StudySettings(LambdaGrid):
             against it (flows/study/variants.py). A study of `sft` and variants only needs no γ: it runs
             no extraction stage and no gate.
         sft_lrs: full fine-tuning's lr grid, chosen like a variant's; empty: `downstream.lr`.
+        compare: declared (arm, baseline) pairs among the variants (and sft) compared besides each
+            variant against sft, e.g. `[[lora_sp_b64, lora_r64]]` (paired by seed and goal).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     variants: dict[str, Variant] = Field(default_factory=dict)
     sft_lrs: list[float] = Field(default_factory=list)
+    compare: list[tuple[str, str]] = Field(default_factory=list)
     draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
     draws_per_replicate: int = Field(1, ge=1)
     tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001], min_length=1)
@@ -131,6 +134,11 @@ class StudySettings(LambdaGrid):
         twice = sorted({arm for arm in self.arms if self.arms.count(arm) > 1})
         if twice:
             raise ValueError(f"study.arms lists {', '.join(twice)} more than once: each arm is run once")
+        unknown = sorted({x for pair in self.compare for x in pair} - {*self.variants, "sft"})
+        if unknown:
+            raise ValueError(f"study.compare names {unknown}: only study.variants and sft are compared there")
+        if any(arm == baseline for arm, baseline in self.compare):
+            raise ValueError(f"study.compare pairs an arm with itself: {self.compare}")
         clash = sorted(set(self.variants) & set(ALL_ARMS + ("meta_sft_dose",)))
         if clash:
             raise ValueError(f"study.variants {clash} are named like a study arm: give them names of theirs")

@@ -173,5 +173,19 @@ def forms_section(workspace: Workspace, report: StudyReport) -> list[str]:
         "come from the runs' summaries.",
         "",
         *_table(form_rows(workspace, report), budgets),
+        *_declared(report),
         *_spreads(report),
     ]
+
+
+def _declared(report: StudyReport) -> list[str]:
+    """The pairs the study declared besides each variant against full FT (`study.compare`)."""
+    if not report.design.compare:
+        return []
+    lines = ["", "Declared comparisons at the endpoint (paired by seed and goal):", "",
+             "| comparison | difference [95 % CI] | MDD |", "|---|---|---|"]  # fmt: skip
+    for arm, baseline in report.design.compare:
+        wanted = (arm, baseline, ENDPOINT)
+        c = next((c for c in report.comparisons if (c.arm, c.baseline, c.budget) == wanted), None)
+        lines.append(f"| {arm} − {baseline} | {_difference(c)} | {f'{c.mdd:.1f}' if c else '—'} |")
+    return lines

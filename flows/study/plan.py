@@ -655,6 +655,7 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
         "name": cfg.name,
         "arms": [*s.arms, *s.variants],
         "variants": {name: v.model_dump(mode="json") for name, v in s.variants.items()},
+        "compare": [list(pair) for pair in s.compare],
         "draws": list(s.draws) if s.needs_gamma else [],
         "seeds": list(cfg.seeds),
         "endpoint_budgets": cfg.curve_budgets,

@@ -70,9 +70,9 @@ COMPARED = (  # (arm, baseline): the report's headline, then the controls
 
 
 def compared_pairs(design: StudyDesign) -> tuple[tuple[str, str], ...]:
-    """Every (arm, baseline) the study compares: the fixed ones, then each variant against full
-    fine-tuning (`sft`)."""
-    return COMPARED + tuple((name, "sft") for name in design.variants)
+    """Every (arm, baseline) the study compares: the fixed ones, each variant against full fine-tuning
+    (`sft`), then the pairs the study declares (`study.compare`)."""
+    return COMPARED + tuple((name, "sft") for name in design.variants) + tuple(map(tuple, design.compare))
 
 
 GATING = ("c", "c_prime")
@@ -88,6 +88,8 @@ class StudyDesign(BaseModel):
     arms: list[str]
     variants: dict[str, dict[str, Any]] = {}
     """Variant name -> its declaration (`arm`, `set`, `lrs`): arms from θ_pt compared against `sft`."""
+    compare: list[tuple[str, str]] = []
+    """Declared (arm, baseline) pairs among the variants, compared besides each variant against `sft`."""
     draws: list[int]
     """The γ draws; empty for a study whose arms need no γ."""
     seeds: list[int]
