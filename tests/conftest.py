@@ -67,7 +67,7 @@ def run_cli(
 def settled_task_states(flow_run_id, timeout: float = 60) -> dict[str, str]:
     """Task-run name -> state name of a finished flow run, once Prefect has recorded every final state:
     the API records task-run states from events, after the flow run has returned, so a read right away
-    can still see a cached task as Running (seen on CI)."""
+    can still see a cached task as Running, or a task run with no state yet (both seen on CI)."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
@@ -76,8 +76,10 @@ def settled_task_states(flow_run_id, timeout: float = 60) -> dict[str, str]:
     with get_client(sync_client=True) as client:
         while True:
             runs = client.read_task_runs(flow_run_filter=of_this_run)
-            if all(run.state.is_final() for run in runs) or time.monotonic() > deadline:
+            if all(run.state is not None and run.state.is_final() for run in runs):
                 return {run.name: run.state.name for run in runs}
+            if time.monotonic() > deadline:  # a task run with no state recorded yet reads as None
+                return {run.name: run.state.name if run.state else None for run in runs}
             time.sleep(0.5)
 
 
