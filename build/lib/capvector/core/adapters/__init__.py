@@ -1,1 +1,0 @@
-"""Low-rank adapters: LoRA through peft, and rank-adaptive LoRA-SP."""

@@ -1,1 +1,0 @@
-"""Batched rollouts on Meta-World under a fingerprinted protocol."""

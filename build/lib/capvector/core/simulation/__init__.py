@@ -1,1 +1,0 @@
-"""Meta-World: task names, environments, observation maps, depth targets, expert demos."""

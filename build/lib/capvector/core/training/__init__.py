@@ -1,1 +1,0 @@
-"""The training loop and what it uses: batches, auxiliary objectives, the orthogonal loss."""

@@ -1,1 +1,0 @@
-"""Checkpoints as safetensors and the capability-vector arithmetic on them."""

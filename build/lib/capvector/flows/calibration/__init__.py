@@ -1,1 +1,0 @@
-"""A calibration before a study: its configuration, plan and flow."""

@@ -1,1 +1,0 @@
-"""Scoring checkpoints: the evaluate and reevaluate flows, schedules, protocols by name."""

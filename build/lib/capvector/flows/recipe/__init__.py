@@ -1,1 +1,0 @@
-"""The recipe run once: its configuration, plan, flow, sweep and report."""

@@ -1,1 +1,0 @@
-"""A study: its configuration, plan, flow and report."""

@@ -1,1 +1,0 @@
-"""What every step runs on: the cache, the Prefect task decorator, code hashes, progress, scratch."""

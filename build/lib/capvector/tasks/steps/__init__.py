@@ -1,1 +1,0 @@
-"""The steps: each reads its inputs by id, skips work already answered, registers what it makes."""
