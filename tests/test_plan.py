@@ -214,3 +214,12 @@ def test_a_dose_arm_and_a_tuning_mean_vector_change_only_what_they_name():
         load_study("study-smoke", ["study.dose_alpha=2.0"])
     with pytest.raises(ValueError, match="tuning_vector_draws"):
         load_study("study-smoke", ["study.tuning_vector_draws=[0, 100]"])
+
+
+def test_a_lambda_cell_reads_the_same_in_every_report_including_sweeps_recorded_before_the_rename():
+    from capvector.flows.recipe.config import lambda_label
+
+    assert lambda_label({"alpha": 1.1, "lambda_relative": 0.1}) == "λ_rel=0.1"
+    assert lambda_label({"alpha": 1.1, "lambda_absolute": 1e-4}) == "λ_abs=0.0001"
+    assert lambda_label({"alpha": 1.1, "lambda": 1e-4}) == "λ_abs=0.0001"  # a sweep recorded before the rename
+    assert lambda_label({"alpha": 1.1}) == "λ none"
