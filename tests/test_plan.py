@@ -221,5 +221,5 @@ def test_a_lambda_cell_reads_the_same_in_every_report_including_sweeps_recorded_
 
     assert lambda_label({"alpha": 1.1, "lambda_relative": 0.1}) == "λ_rel=0.1"
     assert lambda_label({"alpha": 1.1, "lambda_absolute": 1e-4}) == "λ_abs=0.0001"
-    assert lambda_label({"alpha": 1.1, "lambda": 1e-4}) == "λ_abs=0.0001"  # a sweep recorded before the rename
+    assert lambda_label({"alpha": 1.1, "lambda": 1e-4}) == "λ_abs=0.0001"  # an old sweep
     assert lambda_label({"alpha": 1.1}) == "λ none"
