@@ -40,12 +40,10 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from safetensors.torch import save_file
 from torch import nn
 
 from capvector.core.adapters import lora
-from capvector.core.adapters.lora import ADAPTER_NAME, ADAPTER_WEIGHTS, PEFT_PREFIX
-from capvector.core.vectors.safetensors_io import atomic_directory
+from capvector.core.adapters.lora import ADAPTER_NAME
 
 if TYPE_CHECKING:
     import peft
@@ -236,7 +234,6 @@ def save_adapter(model: nn.Module, out: str | os.PathLike, overwrite: bool = Fal
     if not layers:
         raise ValueError("the model has no AdaLoRA layers to save")
     config = copy.copy(schedule(model).config)
-    config.inference_mode = True
     kept = kept_triplets(model)
     tensors = {}
     for name, layer in layers.items():
@@ -246,14 +243,7 @@ def save_adapter(model: nn.Module, out: str | os.PathLike, overwrite: bool = Fal
         tensors[f"{name}.lora_B"] = layer.lora_B[ADAPTER_NAME][:, keep]
     if config.rank_pattern is not None:
         config.rank_pattern = {f"{name}.lora_E": mask.tolist() for name, mask in kept.items()}
-    with atomic_directory(out, overwrite) as tmp:
-        save_file(
-            {PEFT_PREFIX + k: t.detach().to("cpu").contiguous() for k, t in tensors.items()},
-            tmp / ADAPTER_WEIGHTS,
-            metadata={"format": "pt"},
-        )
-        config.save_pretrained(str(tmp))
-    return Path(out)
+    return lora.write_peft_adapter(out, tensors, config, overwrite)
 
 
 def merge_adalora(model: nn.Module) -> nn.Module:

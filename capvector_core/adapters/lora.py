@@ -42,7 +42,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -323,9 +323,17 @@ def save_adapter(model: nn.Module, out: str | os.PathLike, overwrite: bool = Fal
         )
     import peft
 
-    config = copy.copy(configs[ADAPTER_NAME])
-    config.inference_mode = True
     tensors = peft.get_peft_model_state_dict(model, adapter_name=ADAPTER_NAME)
+    return write_peft_adapter(out, tensors, configs[ADAPTER_NAME], overwrite)
+
+
+def write_peft_adapter(
+    out: str | os.PathLike, tensors: dict[str, torch.Tensor], config: Any, overwrite: bool = False
+) -> Path:
+    """`out` in peft's layout (weights under peft's key prefix, `adapter_config.json` for inference),
+    written atomically: what `PeftModel.from_pretrained` loads. `config` is copied, not changed."""
+    config = copy.copy(config)
+    config.inference_mode = True
     with atomic_directory(out, overwrite) as tmp:
         save_file(
             {PEFT_PREFIX + k: t.detach().to("cpu").contiguous() for k, t in tensors.items()},
