@@ -28,9 +28,7 @@ writes them only with `--write`.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import platform
 import shutil
 import statistics
 import tempfile
@@ -41,7 +39,18 @@ from types import SimpleNamespace
 from typing import Any
 
 import torch
-from bench_train_cuda import Interrupted, compared, cpu_state, difference, make_dataset, say, timed
+from bench_train_cuda import (
+    Interrupted,
+    add_device_options,
+    compared,
+    cpu_state,
+    difference,
+    entry_of,
+    make_dataset,
+    say,
+    timed,
+    write_results,
+)
 
 from capvector.core.adapters import adalora
 from capvector.core.adapters.adalora import AdaLoraConfig
@@ -53,7 +62,6 @@ from capvector.core.training.device import resolve_device, run_environment
 from capvector.core.training.trainer import TrainConfig, train
 from capvector.tasks.adapters import ADAPTERS
 
-RESULTS = Path(__file__).resolve().parent / "results"
 TARGETS = ["attn.*_proj", "mlp.fc*", "action_head.*"]  # the studies' adapter targets (flows/recipe/config)
 FORMS: dict[str, dict[str, Any]] = {
     "full": {"adapter": "full"},
@@ -255,23 +263,12 @@ def markdown(entry: dict) -> str:
 
 def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", default="cuda", help="the device checked: cuda, cuda:N or cpu (default cuda)")
+    add_device_options(ap, "adapters_cuda")
     ap.add_argument("--steps", type=int, default=100, help="steps per timed call (per form and round)")
     ap.add_argument("--rounds", type=int, default=2, help="timed calls per form, order alternating")
     ap.add_argument("--resume-steps", type=int, default=100, help="steps of the resume check's runs")
     ap.add_argument("--warmup-steps", type=int, default=5, help="steps of each form's untimed first call")
-    ap.add_argument("--batch-size", type=int, default=64)
-    ap.add_argument("--d-model", type=int, default=128)
-    ap.add_argument("--checkpoint-every", type=int, default=100)
-    ap.add_argument(
-        "--device-threads",
-        type=int,
-        default=torch.get_num_threads(),
-        help="torch CPU threads of the runs (default: torch's count here)",
-    )
-    ap.add_argument("--quick", action="store_true", help="a CPU dry run: a few steps, d_model 32, 1 thread")
     ap.add_argument("--write", action="store_true", help="write the results of a --quick run too")
-    ap.add_argument("--results", type=Path, default=RESULTS, help="where adapters_cuda.{md,json} go")
     args = ap.parse_args()
     if args.quick:
         args.steps, args.rounds, args.resume_steps, args.warmup_steps, args.d_model = 10, 1, 10, 5, 32
@@ -313,24 +310,12 @@ def main() -> None:
         speed, exact = measure(args, device, dataset, work)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    entry = {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "python": platform.python_version(),
-        "environment": env,
-        "dataset_steps": len(dataset),
-        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-        "throughput": speed,
-        "resume": exact,
-        "seconds": round(time.perf_counter() - started, 1),
-    }
+    entry = entry_of(started, env, dataset, args, throughput=speed, resume=exact)
     print(json.dumps(entry, indent=1))
     if args.quick and not args.write:
         say(f"dry run: nothing written ({entry['seconds']:.0f} s in all; --write writes it)")
         return
-    args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / "adapters_cuda.json").write_text(json.dumps(entry, indent=1) + "\n")
-    (args.results / "adapters_cuda.md").write_text(markdown(entry))
-    say(f"wrote {args.results / 'adapters_cuda.md'} and adapters_cuda.json ({entry['seconds']:.0f} s in all)")
+    write_results(args.results, "adapters_cuda", entry, markdown(entry))
 
 
 if __name__ == "__main__":

@@ -330,15 +330,9 @@ def markdown(entry: dict) -> str:
     )
 
 
-def parse_args() -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_device_options(ap: argparse.ArgumentParser, stem: str) -> None:
+    """The options every GPU benchmark here takes: device, model size, threads, dry run, results folder."""
     ap.add_argument("--device", default="cuda", help="the device checked: cuda, cuda:N or cpu (default cuda)")
-    ap.add_argument("--steps", type=int, default=300, help="steps per timed run on the device")
-    ap.add_argument(
-        "--cpu-steps", type=int, default=None, help="steps of the 1-thread CPU run (default: --steps)"
-    )
-    ap.add_argument("--resume-steps", type=int, default=100, help="steps of the resume check's runs")
-    ap.add_argument("--rounds", type=int, default=3, help="alternating rounds of the overhead phase")
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--d-model", type=int, default=128)
     ap.add_argument("--checkpoint-every", type=int, default=100)
@@ -349,7 +343,38 @@ def parse_args() -> argparse.Namespace:
         help="torch CPU threads of the runs on the device (default: torch's count here)",
     )
     ap.add_argument("--quick", action="store_true", help="a CPU dry run: a few steps, d_model 32, 1 thread")
-    ap.add_argument("--results", type=Path, default=RESULTS, help="where train_cuda.{md,json} go")
+    ap.add_argument("--results", type=Path, default=RESULTS, help=f"where {stem}.{{md,json}} go")
+
+
+def entry_of(started: float, env: dict, dataset: DemoDataset, args: argparse.Namespace, **measured) -> dict:
+    """A benchmark run's record: when, where, on what, with which options, what it measured, how long."""
+    return {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "python": platform.python_version(),
+        "environment": env,
+        "dataset_steps": len(dataset),
+        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        **measured,
+        "seconds": round(time.perf_counter() - started, 1),
+    }
+
+
+def write_results(results: Path, stem: str, entry: dict, markdown_text: str) -> None:
+    results.mkdir(parents=True, exist_ok=True)
+    (results / f"{stem}.json").write_text(json.dumps(entry, indent=1) + "\n")
+    (results / f"{stem}.md").write_text(markdown_text)
+    say(f"wrote {results / f'{stem}.md'} and {stem}.json ({entry['seconds']:.0f} s in all)")
+
+
+def parse_args() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_device_options(ap, "train_cuda")
+    ap.add_argument("--steps", type=int, default=300, help="steps per timed run on the device")
+    ap.add_argument(
+        "--cpu-steps", type=int, default=None, help="steps of the 1-thread CPU run (default: --steps)"
+    )
+    ap.add_argument("--resume-steps", type=int, default=100, help="steps of the resume check's runs")
+    ap.add_argument("--rounds", type=int, default=3, help="alternating rounds of the overhead phase")
     args = ap.parse_args()
     if args.quick:
         args.steps, args.cpu_steps, args.resume_steps, args.rounds, args.d_model = 10, 10, 8, 1, 32
@@ -370,20 +395,9 @@ def main() -> None:
         policies = {t: measure(t, args, dataset, device, work) for t in TYPES}
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    entry = {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "python": platform.python_version(),
-        "environment": env,
-        "dataset_steps": len(dataset),
-        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-        "policies": policies,
-        "seconds": round(time.perf_counter() - started, 1),
-    }
+    entry = entry_of(started, env, dataset, args, policies=policies)
     print(json.dumps(entry, indent=1))
-    args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / "train_cuda.json").write_text(json.dumps(entry, indent=1) + "\n")
-    (args.results / "train_cuda.md").write_text(markdown(entry))
-    say(f"wrote {args.results / 'train_cuda.md'} and train_cuda.json ({entry['seconds']:.0f} s in all)")
+    write_results(args.results, "train_cuda", entry, markdown(entry))
 
 
 if __name__ == "__main__":
