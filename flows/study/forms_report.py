@@ -16,7 +16,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from capvector.core.vectors.spectrum import KIND_ORDER, module_kind
-from capvector.stats.paired_differences import ENDPOINT, Comparison, CurvePoint
+from capvector.stats.paired_differences import Comparison, CurvePoint
 from capvector.tasks.runtime.workspace import Workspace
 from capvector.tasks.steps.study_analysis import StudyReport
 
@@ -83,14 +83,7 @@ def form_rows(workspace: Workspace, report: StudyReport) -> list[FormRow]:
                 lr=lrs.pop() if len(lrs) == 1 else None,
                 budgets={p.budget: p for p in report.curves.get(arm, [])},
                 endpoint=report.endpoints.get(arm),
-                vs_full=next(
-                    (
-                        c
-                        for c in report.comparisons
-                        if (c.arm, c.baseline, c.budget) == (arm, "sft", ENDPOINT)
-                    ),
-                    None,
-                ),
+                vs_full=report.comparison(arm, "sft"),
                 trainable_parameters=_median([r["summary"].get("trainable_parameters") for r in records]),
                 seconds_per_step=1.0 / speeds if speeds else None,
                 active_ranks=_mean_ranks(records),
@@ -185,7 +178,6 @@ def _declared(report: StudyReport) -> list[str]:
     lines = ["", "Declared comparisons at the endpoint (paired by seed and goal):", "",
              "| comparison | difference [95 % CI] | MDD |", "|---|---|---|"]  # fmt: skip
     for arm, baseline in report.design.compare:
-        wanted = (arm, baseline, ENDPOINT)
-        c = next((c for c in report.comparisons if (c.arm, c.baseline, c.budget) == wanted), None)
+        c = report.comparison(arm, baseline)
         lines.append(f"| {arm} − {baseline} | {_difference(c)} | {f'{c.mdd:.1f}' if c else '—'} |")
     return lines

@@ -100,15 +100,9 @@ def _mean_cell(p: CurvePoint) -> str:
     return f"{p.mean:.1f} [{p.ci_low:.1f}, {p.ci_high:.1f}]"
 
 
-def _find(report: StudyReport, arm: str, baseline: str, budget: int) -> Comparison | None:
-    return next(
-        (c for c in report.comparisons if (c.arm, c.baseline, c.budget) == (arm, baseline, budget)), None
-    )
-
-
 def _positive_control(report: StudyReport) -> list[str]:
     """Does the auxiliary objective help here at all (the testbed's positive control)?"""
-    c = _find(report, "aux", "sft", ENDPOINT)
+    c = report.comparison("aux", "sft", ENDPOINT)
     if c is None:
         return []
     shown = c.testable and c.reliable and c.ci_low > 0
@@ -123,7 +117,7 @@ def _positive_control(report: StudyReport) -> list[str]:
 
 def _target(report: StudyReport, speed: dict[str, float]) -> list[str]:
     """The bar the study was built for, judged on point estimates and CIs at the primary endpoint."""
-    vs_aux, vs_sft = _find(report, "capvector", "aux", ENDPOINT), _find(report, "capvector", "sft", ENDPOINT)
+    vs_aux, vs_sft = report.comparison("capvector", "aux"), report.comparison("capvector", "sft")
     if vs_aux is None or vs_sft is None:
         return []
     near_aux = -2 <= vs_aux.ci_low and vs_aux.ci_high <= 2
@@ -233,16 +227,16 @@ def _gate(report: StudyReport) -> list[str]:
 
 def _headline(report: StudyReport) -> list[str]:
     """CapVector against each baseline with its MDD; without CapVector's arms, the positive control's MDD."""
-    if report.gate is not None or _find(report, "capvector", "sft", ENDPOINT) is None:
-        return _sizing(report, "aux-sft", _find(report, "aux", "sft", ENDPOINT))
+    if report.gate is not None or report.comparison("capvector", "sft", ENDPOINT) is None:
+        return _sizing(report, "aux-sft", report.comparison("aux", "sft", ENDPOINT))
     final = report.design.final_budget
     lines = ["", "## Headline", "", "| comparison | endpoint (primary) | @ " + f"{final} (final) | MDD |"]
     lines.append("|---|---|---|---|")
     for arm, baseline in HEADLINE:
-        p, f = _find(report, arm, baseline, ENDPOINT), _find(report, arm, baseline, final)
+        p, f = report.comparison(arm, baseline, ENDPOINT), report.comparison(arm, baseline, final)
         mdd = f"{p.mdd:.1f}" if p and p.testable else "—"
         lines.append(f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(p)} | {_cell(f)} | {mdd} |")
-    return lines + _sizing(report, "capvector-sft", _find(report, "capvector", "sft", ENDPOINT))
+    return lines + _sizing(report, "capvector-sft", report.comparison("capvector", "sft", ENDPOINT))
 
 
 def _preconditions(report: StudyReport) -> list[str]:
@@ -267,8 +261,8 @@ def _other_comparisons(report: StudyReport) -> list[str]:
         others += (("meta_sft_dose", "sft"), ("meta_sft_dose", "meta_sft"))
     for arm, baseline in others:
         lines.append(
-            f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(_find(report, arm, baseline, ENDPOINT))} | "
-            f"{_cell(_find(report, arm, baseline, final))} |"
+            f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(report.comparison(arm, baseline, ENDPOINT))} | "
+            f"{_cell(report.comparison(arm, baseline, final))} |"
         )
     return lines
 

@@ -196,6 +196,11 @@ class StudyReport(BaseModel):
     components (None: none in the searched grid; components this study could not separate count as 0,
     so it is a lower bound then)."""
 
+    def comparison(self, arm: str, baseline: str, budget: int = ENDPOINT) -> Comparison | None:
+        """`arm` − `baseline` at `budget` (the primary endpoint by default), or None where not compared."""
+        wanted = (arm, baseline, budget)
+        return next((c for c in self.comparisons if (c.arm, c.baseline, c.budget) == wanted), None)
+
 
 def _episodes(workspace: Workspace, labelled: list[tuple[dict[str, Any], str]]) -> pd.DataFrame:
     """One row per episode with the paired_differences columns; `goal` is the episode's env seed."""
