@@ -248,7 +248,9 @@ class _Run:
     """State of one training invocation (kept together so checkpointing sees all of it), and the steps
     of its loop: schedule, loss, clipping, and the bookkeeping after each step."""
 
-    def __init__(self, policy, objective, dataset, config, run_dir, device, extra_losses, step_hook=None):
+    def __init__(
+        self, policy, objective, dataset, config, run_dir, device, extra_losses, step_hook=None, snaps=None
+    ):
         """On `device` in train mode, with a fresh optimizer and the run's seeded generators."""
         policy.to(device).train()
         # the policy's, then the heads': the order the gradient norm sums in (bit for bit)
@@ -267,7 +269,7 @@ class _Run:
         self.step = 0
         self.train_seconds = 0.0
         self.lap_start = 0.0  # when the timed stretch now running began (time.perf_counter)
-        self.write_snapshot: SnapshotWriter = save_policy
+        self.write_snapshot: SnapshotWriter = snaps or save_policy  # snaps: the run's SnapshotWriter
 
     def schedule(self, step: int) -> float:
         """Set the learning rate of 0-based `step` (a pure function of it: nothing to resume)."""
@@ -569,9 +571,8 @@ def train(
     device, execution = _set_up_torch(config)
     objective = _objective(policy, dataset, config, extra_losses)
     n, make_batch = _batcher(policy, objective, dataset, config, device)
-    run = _Run(policy, objective, dataset, config, run_dir, device, extra_losses, after_optimizer_step)
-    if snapshot_writer is not None:
-        run.write_snapshot = snapshot_writer
+    hooks = {"step_hook": after_optimizer_step, "snaps": snapshot_writer}
+    run = _Run(policy, objective, dataset, config, run_dir, device, extra_losses, **hooks)
 
     curve_path = run_dir / "loss_curve.jsonl"
     passed_over = run.resume(set(config.snapshot_steps), curve_path)
