@@ -223,3 +223,34 @@ def test_a_lambda_cell_reads_the_same_in_every_report_including_sweeps_recorded_
     assert lambda_label({"alpha": 1.1, "lambda_absolute": 1e-4}) == "λ_abs=0.0001"
     assert lambda_label({"alpha": 1.1, "lambda": 1e-4}) == "λ_abs=0.0001"  # an old sweep
     assert lambda_label({"alpha": 1.1}) == "λ none"
+
+
+GATE_ONLY = ["study.gate=true", "study.arms=[sft,aux,sft_from_ao,sft_from_ft]"]
+
+
+def test_a_gate_only_study_is_the_gated_plan_up_to_its_gate_and_needs_no_capvector_arm():
+    """Issue 39's powered gate: a study of the preconditions alone plans exactly the steps a full study
+    runs before its gate (same labels, same order) and nothing after it."""
+    full_plan, gate_at = gated_study_plan(load_study("study-smoke", ["study.gate=true"]))
+    gate_only = load_study("study-smoke", GATE_ONLY)
+    assert gate_only.study.gate_only
+    plan = study_plan(gate_only)
+    assert labels(plan) == labels(full_plan)[:gate_at]
+    assert labels(plan)[-1] == "analyse study study-smoke (gate)"
+    assert study_steps(gate_only) == (len(plan), 0)
+
+
+def test_without_the_gate_the_gate_arms_alone_are_refused_naming_the_missing_arm():
+    with pytest.raises(ValueError, match=r"must include \['capvector'\].*gate-only study lists exactly"):
+        load_study("study-smoke", ["study.gate=false", "study.arms=[sft,aux,sft_from_ao,sft_from_ft]"])
+
+
+def test_a_gate_only_report_says_the_gate_passed_and_that_capvector_was_not_part_of_it():
+    from capvector.flows.study.report import _gate
+    from capvector.tasks.steps.study_analysis import StudyDesign, StudyReport
+
+    def report(stage: str) -> StudyReport:
+        return StudyReport.model_construct(gate=None, design=StudyDesign.model_construct(stage=stage))
+
+    assert "declared gate-only" in "\n".join(_gate(report("gate")))
+    assert _gate(report("final")) == []

@@ -76,7 +76,9 @@ class StudySettings(LambdaGrid):
         budgets: downstream steps at which every run is kept and tested besides the final one. The
             primary endpoint is the mean success over these budgets and the final one (the area under
             the success-vs-steps curve); values are chosen on validation goals at that same endpoint.
-        arms: the compared arms (sft and capvector are required).
+        arms: the compared arms (sft and capvector are required, except in a gate-only study: with
+            `gate: true` and exactly the gate's arms, the study ends at its gate whatever it shows, and
+            its report is the gate's).
         n_boot: bootstrap resamples per interval.
         gate: run the arms that test the preconditions (SFT, auxiliary SFT, SFT from θ_ao and from θ_ft)
             first and the CapVector arms only when (c) and (c′) hold with intervals above 0; otherwise the
@@ -116,6 +118,11 @@ class StudySettings(LambdaGrid):
         """Whether an arm depends on γ (anything but `sft`, `aux` and the variants, all from θ_pt): only
         then do the extraction stage, the γ draws and the gate run."""
         return any(arm not in SHARED_ARMS for arm in self.arms)
+
+    @property
+    def gate_only(self) -> bool:
+        """A study of the preconditions alone: it ends at its gate, passed or not."""
+        return self.gate and set(self.arms) == set(GATE_ARMS)
 
     def _grids_and_arms(self) -> None:
         """Every grid has distinct (and, for lrs and weights, positive) values; `sft` is an arm."""
@@ -176,11 +183,12 @@ class StudySettings(LambdaGrid):
         shared = sorted(set(self.tuning_vector_draws) & set(self.draws))
         if shared:
             raise ValueError(f"study.tuning_vector_draws {shared} are also compared draws")
-        missing = {"sft", "capvector"} - set(self.arms)
+        missing = {"sft", "capvector"} - set(self.arms) - ({"capvector"} if self.gate_only else set())
         if missing:
             raise ValueError(
                 f"study.arms must include {sorted(missing)}: every comparison is against them (a study of "
-                "fine-tuning forms lists sft and study.variants only)"
+                "fine-tuning forms lists sft and study.variants only; a gate-only study lists exactly the "
+                f"gate's arms {list(GATE_ARMS)} with study.gate: true)"
             )
         if self.gate:
             lacking = sorted(set(GATE_ARMS) - set(self.arms))
