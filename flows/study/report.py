@@ -340,10 +340,14 @@ def _chosen(chosen: dict[str, float]) -> str:
 
 
 def _choices(report: StudyReport) -> list[str]:
-    """The settings chosen on validation goals and the `selection` artifacts that record each choice."""
+    """The settings chosen on validation goals and the `selection` artifacts that record each choice (or,
+    where nothing was chosen, the settings the preset gave)."""
+    title = "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)"
+    if report.design.given:
+        title = "## Settings (given by the preset: nothing was chosen, no tuning run)"
     lines = [
         "",
-        "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)",
+        title,
         "",
         _chosen(report.design.chosen),
         "",
