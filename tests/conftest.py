@@ -85,9 +85,47 @@ def settled_task_states(flow_run_id, timeout: float = 60) -> dict[str, str]:
             time.sleep(0.5)
 
 
+def old_report(workspace, evaluations: dict[str, str]) -> str:
+    """A `report` artifact as `capvector run` wrote it before the recipe run once became a study: its
+    writer is gone, its records stay readable (`capvector report ID`). One row per arm ("<arm>/seed<k>"
+    labels) from the evaluations' scores, each run's lr and parameters from its checkpoint's record."""
+    from capvector.artifacts.scores import read_scores
+    from capvector.tasks.steps import reporting as r
+
+    scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=evaluations.values())}
+    runs: dict[str, list[r.ReportRun]] = {}
+    for label, eval_id in sorted(evaluations.items()):
+        score, checkpoint = scores[eval_id], workspace.api.get(scores[eval_id].checkpoint_id)
+        run = r.ReportRun(
+            label=label,
+            evaluation_id=eval_id,
+            checkpoint_id=checkpoint.id,
+            success_rates=score.success_rates,
+            mean_success=score.mean_success,
+            trainable_parameters=checkpoint.config.get("summary", {}).get("trainable_parameters"),
+            lr=r.trained_with(checkpoint.config, "lr"),
+        )
+        runs.setdefault(label.split("/")[0], []).append(run)
+    arms = {
+        arm: r.ArmRow(
+            overall=r.MeanStd.of([run.mean_success for run in rows]),
+            per_task={t: r.MeanStd.of([run.success_rates[t] for run in rows]) for t in rows[0].success_rates},
+            trainable_parameters=rows[0].trainable_parameters,
+            lr=rows[0].lr,
+            runs=rows,
+        )
+        for arm, rows in runs.items()
+    }
+    report = r.Report(fingerprint=next(iter(scores.values())).fingerprint, arms=arms)
+    report.markdown = r.markdown_table(report)
+    parents = [(eval_id, "evaluation") for eval_id in evaluations.values()]
+    return workspace.api.register_json(report, kind="report", name="report", parents=parents).id
+
+
 @pytest.fixture(scope="session")
 def smoke_home(tmp_path_factory) -> tuple[Path, dict]:
-    """One cold `capvector run --preset smoke` shared by the flow, CLI and scheduling tests."""
+    """One cold `capvector run --preset smoke` (the recipe as the smallest study) shared by the flow, CLI
+    and scheduling tests; its `--json`: the products' ids and the study's."""
     home = tmp_path_factory.mktemp("smoke-home")
     proc = run_cli("run", "--preset", "smoke", "--json", home=home)
     return home, json.loads(proc.stdout)
