@@ -82,6 +82,8 @@ def test_smoke_run_with_an_s3_home_on_the_cluster(cluster, smoke_home, tmp_path)
     assert {k: v for k, v in ids.items() if k != "report_file"} == {
         k: v for k, v in local.items() if k != "report_file"
     }
+    # the Markdown report: in the driver's cache of the home, not in a local folder `s3:` of the cwd
+    assert Path(ids["report_file"]).is_relative_to(tmp_path / "driver-cache"), ids["report_file"]
 
     from capvector.flows.recipe.config import load_config
 
@@ -103,8 +105,10 @@ def test_smoke_run_with_an_s3_home_on_the_cluster(cluster, smoke_home, tmp_path)
     for name, cache in (("rerun", "driver-cache"), ("fresh driver", "fresh-driver-cache")):
         before = _executed(address)
         env = {"CAPVECTOR_CACHE": str(tmp_path / cache)}
-        again = run_cli("run", "--preset", "smoke", *runner, home=home, env=env, timeout=600)
-        assert json.loads(again.stdout) == ids, name
+        proc = run_cli("run", "--preset", "smoke", *runner, home=home, env=env, timeout=600)
+        again = json.loads(proc.stdout)
+        assert Path(again.pop("report_file")).is_relative_to(tmp_path / cache), name  # each driver's own
+        assert again == {k: v for k, v in ids.items() if k != "report_file"}, name
         assert _executed(address) == before, f"{name}: steps were sent to the workers again"
     print(f"smoke run on the dask cluster with an S3 home: {elapsed:.0f} s, steps per worker {ran}")
 

@@ -88,6 +88,8 @@ def test_a_study_killed_mid_draw_on_s3_resumes_in_a_process_pool(cluster, tmp_pa
     resumed = run_cli(*STUDY, "--json", home=home, env={**cache, "CAPVECTOR_QUIET": "0"}, timeout=3600)
     resumed_s = time.monotonic() - started - killed_at
     ids = json.loads(resumed.stdout)
+    # the Markdown report: in this machine's cache of the home, not in a local folder `s3:` of the cwd
+    assert Path(ids["report_file"]).is_relative_to(tmp_path / "driver-cache"), ids["report_file"]
     outcomes = _steps(resumed.stderr)
     assert "failed" not in outcomes.values(), resumed.stderr[-3000:]
     assert not WARNING.search(resumed.stderr), resumed.stderr[-3000:]  # e.g. a cache entry refused

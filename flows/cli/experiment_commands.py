@@ -213,7 +213,10 @@ def run(
     home: HomeOption = None,
     report: Annotated[
         Path | None,
-        typer.Option(help="write the Markdown report and its figures here (default: <home>/reports/)"),
+        typer.Option(
+            help="write the Markdown report and its figures here (default: <home>/reports/; "
+            "a remote home's local cache folder)"
+        ),
     ] = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
@@ -351,7 +354,10 @@ def study(
     home: HomeOption = None,
     report: Annotated[
         Path | None,
-        typer.Option(help="write the Markdown report and its figures here (default: <home>/reports/)"),
+        typer.Option(
+            help="write the Markdown report and its figures here (default: <home>/reports/; "
+            "a remote home's local cache folder)"
+        ),
     ] = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,

@@ -332,9 +332,11 @@ def latest_study_id(workspace: Workspace) -> str | None:
 
 
 def default_report_path(workspace: Workspace, study_id: str) -> Path:
-    """Reports go into the home (`reports/`), never over a tracked file of the directory run from."""
+    """Reports go into the home (`reports/`), never over a tracked file of the directory run from; a
+    remote home's into its local cache folder, beside its run logs (`Path("s3://b/home")` was a local
+    folder `s3:/b/home` in the directory run from)."""
     name = workspace.api.get(study_id).name.removeprefix("analyse study ").replace(" ", "-")
-    return Path(workspace.home) / "reports" / f"{name}-{study_id[:12]}.md"
+    return workspace.local_root / "reports" / f"{name}-{study_id[:12]}.md"
 
 
 def write_study_report(workspace: Workspace, study_id: str, out: Path) -> Path:
