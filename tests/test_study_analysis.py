@@ -36,8 +36,9 @@ def _evaluation(ws: Workspace, name: str, p: float, rng: np.random.Generator) ->
     ).id
 
 
-def _loss(ws: Workspace, name: str, value: float) -> str:
-    return ws.api.register_json({"action_loss": value}, MEASUREMENT_KIND, name).id
+def _loss(ws: Workspace, name: str, value: float, merged: float | None = None) -> str:
+    doc = {"action_loss": value} if merged is None else {"action_loss": value, "merged_action_loss": merged}
+    return ws.api.register_json(doc, MEASUREMENT_KIND, name).id
 
 
 def _study(ws: Workspace, draws: list[int], seeds: list[int]) -> tuple[dict[str, str], StudyDesign]:
@@ -227,3 +228,24 @@ def test_the_secondary_endpoint_pairs_held_out_losses_by_draw_and_seed(tmp_path)
     (c,) = [c for c in report.heldout_loss if (c.arm, c.baseline) == ("capvector", "sft")]
     assert c.n_pairs == 6 and c.difference == pytest.approx(-0.049, abs=1e-9)
     assert c.ci_low < c.difference < c.ci_high < 0
+
+
+def test_an_adapter_arms_merge_error_is_reported_beside_its_held_out_loss(tmp_path):
+    """An arm evaluated as an adapter (LoRA-SP) carries merged − as-trained loss; a dense arm none."""
+    from capvector.flows.study.report import heldout_loss_section
+
+    ws = Workspace(tmp_path / "home")
+    inputs, design = _study(ws, draws=[0], seeds=[0, 1, 2])
+    for s in (0, 1, 2):
+        inputs[DownstreamLoss(arm="sft", draw=-1, seed=s).key] = _loss(ws, f"sft {s}", 0.30)
+        as_trained, merged = 0.25 + 0.01 * s, 0.45 + 0.02 * s  # the merge loses 0.20, 0.21, 0.22
+        inputs[DownstreamLoss(arm="capvector", draw=0, seed=s).key] = _loss(ws, f"cv {s}", as_trained, merged)
+    report = analyse(ws, inputs, design)
+    assert set(report.merge_errors) == {"capvector"}
+    error = report.merge_errors["capvector"]
+    assert error.n_runs == 3 and error.mean == pytest.approx(0.21)
+    assert error.ci_low < 0.20 and error.ci_high > 0.22
+    (c,) = [c for c in report.heldout_loss if (c.arm, c.baseline) == ("capvector", "sft")]
+    assert c.arm_mean == pytest.approx(0.26)  # the comparison uses the loss as trained, not the merge
+    markdown = "\n".join(heldout_loss_section(report))
+    assert "merge error" in markdown and "+0.2100" in markdown

@@ -8,8 +8,10 @@ from capvector.core.adapters.lora import LoraConfig
 from capvector.core.adapters.lora_sp import LoraSPConfig
 from capvector.core.evaluation.rollouts import EvalConfig
 from capvector.core.policies.base import Policy, build_policy, load_policy, save_policy
+from capvector.core.training.held_out_loss import held_out_action_loss
 from capvector.tasks.runtime.workspace import Workspace
 from capvector.tasks.steps import evaluation
+from capvector.tasks.steps.held_out_loss import HELD_OUT_LOSS, merge_error
 from capvector.tasks.steps.training import run_train
 from capvector.tasks.trained_policy import load_trained_policy, policy_form
 from tests.test_trainer import TINY, make_dataset, quick
@@ -36,6 +38,7 @@ def trained(tmp_path, request):
         "lora_sp": run_train(workspace, "sp", inputs, {"train": train, **sp}),
         "lora": run_train(workspace, "lora", inputs, {"train": train, **lo}),
         "init": init_id,
+        "data": data_id,
     }
 
 
@@ -74,3 +77,21 @@ def test_evaluation_record_names_the_form_it_ran(trained, monkeypatch):
     record = workspace.api.get(evaluation.evaluate_checkpoint(workspace, "eval", ids["lora_sp"], config))
     assert record.config["policy_form"]["form"] == "lora_sp_adapter"
     assert record.config["policy_form"]["adapter_id"] == policy_form(workspace, ids["lora_sp"]).adapter_id
+
+
+def test_held_out_loss_is_measured_as_trained_and_names_the_merges_error(trained):
+    """A LoRA-SP checkpoint's loss is its adapter's (as evaluated); its dense merge's is recorded beside."""
+    workspace, dataset, ids = trained
+    inputs = {"checkpoint": ids["lora_sp"], "data": ids["data"]}
+    measured = HELD_OUT_LOSS.run(workspace, "loss sp", inputs, {})
+    doc = workspace.api.store.open_json(measured)
+    policy, _ = load_trained_policy(workspace, ids["lora_sp"], device="cpu")
+    assert doc["form"] == "lora_sp_adapter"
+    assert doc["action_loss"] == held_out_action_loss(policy, dataset, 256, 0)
+    assert doc["merged_action_loss"] == held_out_action_loss(workspace.path(ids["lora_sp"]), dataset, 256, 0)
+    assert merge_error(workspace, measured) == doc["merged_action_loss"] - doc["action_loss"] != 0
+
+    dense = HELD_OUT_LOSS.run(workspace, "loss lora", {"checkpoint": ids["lora"], "data": ids["data"]}, {})
+    doc = workspace.api.store.open_json(dense)
+    assert doc["form"] == "dense" and "merged_action_loss" not in doc
+    assert merge_error(workspace, dense) is None

@@ -11,16 +11,17 @@ from typing import Any
 
 import torch
 
-from capvector.core.policies.base import load_policy
+from capvector.core.policies.base import Policy, load_policy
 from capvector.core.simulation.demos import DemoDataset
 
 
 @torch.no_grad()
 def held_out_action_loss(
-    checkpoint_path: Any, dataset: DemoDataset, batch_size: int, seed: int, device: str = "cpu"
+    checkpoint: Any, dataset: DemoDataset, batch_size: int, seed: int, device: str = "cpu"
 ) -> float:
-    """Mean of the policy's loss over every sample of `dataset` (batches in index order)."""
-    policy = load_policy(checkpoint_path, device=device)
+    """Mean of the policy's loss over every sample of `dataset` (batches in index order). `checkpoint`:
+    a dense checkpoint's path, or a loaded policy (a LoRA-SP checkpoint as trained: init + adapter)."""
+    policy = checkpoint if isinstance(checkpoint, Policy) else load_policy(checkpoint, device=device)
     policy.eval()
     torch.manual_seed(seed)
     n, make_batch = policy.make_batcher(dataset, policy.device)

@@ -276,7 +276,7 @@ def _other_comparisons(report: StudyReport) -> list[str]:
     return lines
 
 
-def _heldout_loss(report: StudyReport) -> list[str]:
+def heldout_loss_section(report: StudyReport) -> list[str]:
     """The held-out action loss: a continuous secondary that sees differences success rates round away."""
     if not report.heldout_loss:
         return []
@@ -293,10 +293,23 @@ def _heldout_loss(report: StudyReport) -> list[str]:
             f"[{c.ci_low:+.4f}, {c.ci_high:+.4f}] | {c.arm_mean:.4f} | {c.baseline_mean:.4f} | "
             f"{c.n_pairs} |"
         )
-    return lines + [
-        "",
-        "Paired by draw and seed; a t interval over the pairs (approximate, see the analysis).",
-    ]
+    lines += ["", "Paired by draw and seed; a t interval over the pairs (approximate, see the analysis)."]
+    if report.merge_errors:
+        lines += [
+            "",
+            "LoRA-SP checkpoints are measured as they are evaluated, with the adapter applied to their init. "
+            "Their dense merge (the checkpoint file, from which vectors are taken) approximates that "
+            "input-conditioned adapter. The merge's error is merged − as-trained held-out loss, mean over "
+            "runs [95 % CI]:",
+            "",
+            "| arm | merge error | runs |",
+            "|---|---|---|",
+        ]
+        for arm, e in report.merge_errors.items():
+            lines.append(
+                f"| {NAMES.get(arm, arm)} | {e.mean:+.4f} [{e.ci_low:+.4f}, {e.ci_high:+.4f}] | {e.n_runs} |"
+            )
+    return lines
 
 
 def _curve_row(arm: str, points: list[CurvePoint], budgets: list[int], speed: dict[str, float]) -> str:
@@ -384,7 +397,7 @@ def study_markdown(workspace: Workspace, report: StudyReport, figures: dict[str,
         *_target(report, speed),
         *_preconditions(report),
         *_other_comparisons(report),
-        *_heldout_loss(report),
+        *heldout_loss_section(report),
         *forms_section(workspace, report),
         *_curves(report, speed),
         *_all_comparisons(report),

@@ -39,7 +39,7 @@ from capvector.stats.paired_differences import (
 )
 from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
 from capvector.tasks.runtime.workspace import Workspace, provenance
-from capvector.tasks.steps.held_out_loss import measured_loss
+from capvector.tasks.steps.held_out_loss import measured_loss, merge_error
 from capvector.tasks.steps.study_forms import RankSpread, endpoints, rank_spreads
 from capvector.tasks.study_inputs import (
     CapabilityVector,
@@ -156,6 +156,17 @@ class LossComparison(BaseModel):
     baseline_mean: float
 
 
+class MergeError(BaseModel):
+    """An arm's dense-merge error: merged − as-trained held-out action loss of its compared runs (LoRA-SP
+    checkpoints are evaluated with their adapter; a merged checkpoint is an approximation of it), the mean
+    over runs with a 95 % t interval over runs."""
+
+    mean: float
+    ci_low: float
+    ci_high: float
+    n_runs: int
+
+
 class RunPoint(BaseModel):
     """One compared run's mean success (points) over its test goals at one budget (budget 0: the
     checkpoint it started from)."""
@@ -191,6 +202,8 @@ class StudyReport(BaseModel):
     convergence: list[dict[str, Any]]
     heldout_loss: list[LossComparison] = []
     """The continuous secondary endpoint: held-out action loss of the compared runs' final checkpoints."""
+    merge_errors: dict[str, MergeError] = {}
+    """Arm -> its dense merge's error, for arms whose checkpoints are evaluated as adapters (LoRA-SP)."""
     per_task: dict[str, dict[str, float]] = {}
     """Arm -> task -> mean success (points) at the primary endpoint, over draws, seeds and goals."""
     per_task_intervals: dict[str, dict[str, TaskEndpoint]] = {}
@@ -564,6 +577,7 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         selections={k.name: sel for k, sel in inputs_of(inputs, Selection)},
         convergence=convergence,
         heldout_loss=_heldout_loss(workspace, inputs, compared_pairs(design)),
+        merge_errors=_merge_errors(workspace, inputs),
         endpoints=means,
         rank_spread=rank_spreads(episodes, design.variants, means, design.n_boot),
         per_task={
@@ -602,6 +616,21 @@ def _final_checkpoints(
         arm = next(k["arm"] for k, e in tests if e == scores.evaluation_id)
         by_arm.setdefault(arm, []).append(scores.checkpoint_id)
     return by_arm
+
+
+def _merge_errors(workspace: Workspace, inputs: dict[str, str]) -> dict[str, MergeError]:
+    by_arm: dict[str, list[float]] = {}
+    for k, m in inputs_of(inputs, DownstreamLoss):
+        error = merge_error(workspace, m)
+        if error is not None:
+            by_arm.setdefault(k.arm, []).append(error)
+    out = {}
+    for arm, errors in sorted(by_arm.items()):
+        values, n = np.array(errors), len(errors)
+        half = t_quantile(0.975, n - 1) * float(values.std(ddof=1)) / math.sqrt(n) if n > 1 else math.nan
+        mean = float(values.mean())
+        out[arm] = MergeError(mean=mean, ci_low=mean - half, ci_high=mean + half, n_runs=len(values))
+    return out
 
 
 def _heldout_loss(
