@@ -138,6 +138,33 @@ def test_ranks_come_from_each_forms_own_override_and_full_fine_tuning_has_none(r
     assert ranks == {"sft": None, **expected}
 
 
+def test_active_rank_fractions_are_of_the_most_a_layer_can_use(rank_home):
+    """LoRA-SP's of its bank; AdaLoRA's of init_r (a layer may keep more than target_r): all in [0, 1]."""
+    from capvector.flows.study.forms_figures import rank_fractions
+
+    home, ids = rank_home
+    ws = Workspace(home)
+    report = StudyReport.model_validate(ws.api.store.open_json(ids["report"]))
+    fractions = rank_fractions(ws, report)
+    arms = {arm for per_arm in fractions.values() for arm in per_arm}
+    assert arms == {"lora_sp_b4", "lora_sp_b8", "adalora_r2"}
+    values = [v for per_arm in fractions.values() for vs in per_arm.values() for v in vs]
+    assert values and all(0 <= v <= 1 for v in values)
+    adalora = [v for per_arm in fractions.values() for v in per_arm.get("adalora_r2", [])]
+    assert any(v > 2 / 4 for v in adalora)  # a layer kept more than target_r (2) of its init_r (4)
+
+
+def test_each_lora_sp_runs_merge_error_is_reported(rank_home, tmp_path):
+    """LoRA-SP runs' held-out loss is their adapter's; the merge's error is the report's, per arm."""
+    home, ids = rank_home
+    report = StudyReport.model_validate(Workspace(home).api.store.open_json(ids["report"]))
+    assert set(report.merge_errors) == {"lora_sp_b4", "lora_sp_b8"}
+    assert all(e.n_runs == len(load_study(SMOKE).seeds) for e in report.merge_errors.values())
+    out = tmp_path / "rank.md"
+    run_cli("report", ids["report"][:12], "-o", str(out), home=home)
+    assert re.search(r"\| lora_sp_b4 \| [+-]\d\.\d{4} \[", out.read_text())
+
+
 def test_a_lora_sp_snapshot_is_tested_as_init_plus_its_own_adapter(rank_home):
     home, ids = rank_home
     ws = Workspace(home)

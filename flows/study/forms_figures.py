@@ -19,6 +19,9 @@ from capvector.tasks.steps.study_analysis import StudyReport
 FORM_COLOURS = {"full": "#4c72b0", "LoRA": "#dd8452", "LoRA-SP": "#55a868", "AdaLoRA": "#c44e52"}
 CAPACITY_KEYS = {"sft_lora": "lora.r", "sft_lora_sp": "lora_sp.bank_size", "sft_adalora": "adalora.target_r"}
 """The override that sets a form's rank: LoRA's r, LoRA-SP's bank, AdaLoRA's final rank budget."""
+CEILING_KEYS = {"lora_sp": "bank_size", "adalora": "init_r"}
+"""Adapter -> its config's field for the most rank one layer can use: LoRA-SP's bank; AdaLoRA's init_r
+(its allocator prunes toward target_r on average over layers, so one layer may keep more than target_r)."""
 
 
 def plot_forms(workspace: Workspace, report: StudyReport, path: Path) -> Path | None:
@@ -75,41 +78,44 @@ def plot_capacity(workspace: Workspace, report: StudyReport, path: Path) -> Path
     return _save(fig, path)
 
 
+def rank_fractions(workspace: Workspace, report: StudyReport) -> dict[str, dict[str, list[float]]]:
+    """Module kind -> rank-adaptive arm -> the active rank of each adapted layer of each of its runs
+    (LoRA-SP: the mean active rank over the calibration inputs; AdaLoRA: the rank its allocator kept), as
+    a fraction of the most a layer of that run can use (CEILING_KEYS of its training config), so banks of
+    different sizes share one axis."""
+    arms = [a for a, v in report.design.variants.items() if v["arm"] in ("sft_lora_sp", "sft_adalora")]
+    out: dict[str, dict[str, list[float]]] = {}
+    for arm in arms:
+        for record in run_summaries(workspace, report.final_checkpoints.get(arm, [])):
+            step = record["train_step"]
+            ceiling = step[step["adapter"]][CEILING_KEYS[step["adapter"]]]
+            for layer, rank in (record["summary"].get("active_ranks") or {}).items():
+                kind = module_kind(f"{layer}.weight")
+                out.setdefault(kind, {}).setdefault(arm, []).append(float(rank) / ceiling)
+    return {k: out[k] for k in KIND_ORDER if k in out}
+
+
 def plot_active_ranks(workspace: Workspace, report: StudyReport, path: Path) -> Path | None:
-    """Per module kind, a box per rank-adaptive arm of the active ranks of its adapted layers over its
-    runs (LoRA-SP: the mean active rank over the calibration inputs; AdaLoRA: the rank its allocator
-    kept), as a fraction of the arm's declared rank, so banks of different sizes share one axis."""
-    arms = [
-        a
-        for a in report.design.variants
-        if report.design.variants[a]["arm"] in ("sft_lora_sp", "sft_adalora")
-    ]
-    per_arm = {a: _layer_ranks(workspace, report, a) for a in arms}
-    per_arm = {a: kinds for a, kinds in per_arm.items() if kinds}
-    if not per_arm:
+    """Per module kind, a box per rank-adaptive arm of its layers' active rank fractions (rank_fractions)."""
+    fractions = rank_fractions(workspace, report)
+    if not fractions:
         return None
-    kinds = [k for k in KIND_ORDER if any(k in v for v in per_arm.values())]
-    fig, axes = plt.subplots(1, len(kinds), figsize=(2.6 * len(kinds) + 1, 3.8), sharey=True, squeeze=False)
-    for ax, kind in zip(axes[0], kinds, strict=True):
-        names = [a for a in per_arm if kind in per_arm[a]]
-        data = [[v / (capacity(report, a) or 1) for v in per_arm[a][kind]] for a in names]
-        ax.boxplot(data, showfliers=True, widths=0.6)
-        ax.set_xticks(range(1, len(names) + 1), names, rotation=35, ha="right", fontsize=7)
+    fig, axes = plt.subplots(
+        1, len(fractions), figsize=(2.6 * len(fractions) + 1, 3.8), sharey=True, squeeze=False
+    )
+    for ax, (kind, per_arm) in zip(axes[0], fractions.items(), strict=True):
+        ax.boxplot(list(per_arm.values()), showfliers=True, widths=0.6)
+        ax.set_xticks(range(1, len(per_arm) + 1), list(per_arm), rotation=35, ha="right", fontsize=7)
         ax.set_title(kind, fontsize=9)
         ax.grid(alpha=0.3, axis="y")
-    axes[0][0].set_ylabel("active rank / declared rank")
+    axes[0][0].set_ylabel("active rank / most a layer can use")
     axes[0][0].set_ylim(0, 1.05)
-    fig.suptitle("Active ranks per module kind (each point: one adapted layer of one run)", fontsize=9)
+    fig.suptitle(
+        "Active ranks per module kind (each point: one adapted layer of one run; "
+        "of LoRA-SP's bank, of AdaLoRA's init_r)",
+        fontsize=9,
+    )
     return _save(fig, path)
-
-
-def _layer_ranks(workspace: Workspace, report: StudyReport, arm: str) -> dict[str, list[float]]:
-    """Module kind -> the active rank of every adapted layer of every final checkpoint of the arm."""
-    kinds: dict[str, list[float]] = {}
-    for record in run_summaries(workspace, report.final_checkpoints.get(arm, [])):
-        for layer, rank in (record["summary"].get("active_ranks") or {}).items():
-            kinds.setdefault(module_kind(f"{layer}.weight"), []).append(float(rank))
-    return kinds
 
 
 def _form_lines(ax: Any, x: dict[str, Any], rows: list[FormRow], annotate: bool) -> list[float]:
