@@ -6,6 +6,11 @@ catalogue row. The store is the truth, so the catalogue may fall behind it but n
   waits in this object and is written before its next read or write, or by the next open's catch-up;
 - a process killed between sidecar and row, or a deleted catalogue.duckdb, is caught up when the next
   ArtifactsAPI opens (`Catalogue.catch_up`: a cheap check, then only the missing sidecars are read);
+  on a remote store, where catching up a new machine's catalogue lists the whole store, only before
+  the object's first catalogue read: a process that only registers, or reads by id (a content-cache
+  hit: capvector.tasks.runtime.caching), never lists the store;
+- `adopt` indexes artifacts another machine committed by their ids, with the ancestors this catalogue
+  lacks, reading their sealed sidecars (no listing): how a driver indexes the ids its steps return;
 - `capvector catalogue sync|rebuild|verify|gc` do the same on demand.
 """
 
@@ -112,7 +117,9 @@ class ArtifactsAPI:
             log.debug(
                 "catalogue rebuilt from the store: %d artifacts, %d runs", report.artifacts, report.runs
             )
-        if catch_up:
+        # A remote store is caught up before the first catalogue read instead (`_read_ready`).
+        self._deferred = catch_up and not self.store.local
+        if catch_up and self.store.local:
             self.catch_up()
 
     # ---------------------------------------------------------------- keeping up with the store
@@ -120,6 +127,7 @@ class ArtifactsAPI:
         """Index what the store has and the catalogue lacks, if the store changed since the last sync.
 
         Never raises CatalogueBusy: a catalogue that stays locked is caught up by a later open."""
+        self._deferred = False
         if not self.catalogue.ready:  # it stayed locked while this object opened it: do not wait again
             self._busy = True
             return None
@@ -161,6 +169,38 @@ class ArtifactsAPI:
                 "seal was stripped (its kind, name, config and lineage are not trusted; re-run the "
                 "computation that produced it to change them)",
             )
+
+    def _read_ready(self) -> None:
+        """Before a catalogue read: the deferred catch-up of a remote store (once), then this object's
+        pending rows."""
+        if self._deferred:
+            with self._lock:
+                if self._deferred:
+                    self.catch_up()
+        self._flush()
+
+    def adopt(self, ids: Iterable[str]) -> int:
+        """Index artifacts committed elsewhere (another machine's step) by id, without listing the
+        store: each one the catalogue lacks, and the ancestors it names that it lacks too, from their
+        sealed sidecars. How many were indexed; an id not (or no longer) in the store is skipped."""
+        self._flush()
+        todo, seen, items = list(dict.fromkeys(ids)), set(), []
+        while todo:
+            todo = [i for i in todo if i not in seen]
+            seen.update(todo)
+            missing = sorted(set(todo) - self.catalogue.known(todo))
+            todo = []
+            for artifact_id in missing:
+                try:
+                    record = self.store.get(artifact_id)
+                    doc = load_doc(self.store, record)
+                except ArtifactNotFound:
+                    continue
+                items.append((record, doc))
+                todo.extend(p.id for p in record.parents)
+        if items:
+            self.catalogue.index(items)
+        return len(items)
 
     @property
     def pending(self) -> int:
@@ -329,35 +369,35 @@ class ArtifactsAPI:
 
     # Reads write this object's pending rows first, so a registration is visible to its own process.
     def ancestors(self, id_or_prefix: str, max_depth: int | None = None) -> list[LineageNode]:
-        self._flush()
+        self._read_ready()
         return self.catalogue.ancestors(self.store.resolve(id_or_prefix), max_depth)
 
     def descendants(self, id_or_prefix: str, max_depth: int | None = None) -> list[LineageNode]:
-        self._flush()
+        self._read_ready()
         return self.catalogue.descendants(self.store.resolve(id_or_prefix), max_depth)
 
     def vectors_merged_into(self, id_or_prefix: str) -> list[MergedVector]:
-        self._flush()
+        self._read_ready()
         return self.catalogue.vectors_merged_into(self.store.resolve(id_or_prefix))
 
     def scores(self, id_or_prefix: str, fingerprint: str | None = None) -> list[ScoreRow]:
-        self._flush()
+        self._read_ready()
         return self.catalogue.scores(self.store.resolve(id_or_prefix), fingerprint)
 
     def query(self, sql: str, params: Any = None) -> "pd.DataFrame":
         """Read-only SQL over the catalogue tables (on a snapshot: a long query holds no writer off)."""
-        self._flush()
+        self._read_ready()
         return self.catalogue.query(sql, params)
 
     def query_rows(self, sql: str, params: Any = None) -> tuple[list[str], list[tuple]]:
         """`query` without pandas: (column names, rows as tuples)."""
-        self._flush()
+        self._read_ready()
         return self.catalogue.query_rows(sql, params)
 
     def copy_to(self, sql: str, params: Any, path: str | os.PathLike[str], fmt: str = "parquet") -> int:
         """The rows of one reading statement written to `path` (Parquet or CSV, by DuckDB's COPY); how
         many rows."""
-        self._flush()
+        self._read_ready()
         return self.catalogue.copy_to(sql, params, path, fmt)
 
     # ---------------------------------------------------------------- maintenance
@@ -365,6 +405,7 @@ class ArtifactsAPI:
         """Recreate the catalogue from the store alone."""
         with self._lock:
             report = self.catalogue.rebuild(self.store)
+            self._deferred = False
             self._pending.clear()  # the store holds them, so the rebuild indexed them
             self._pending_runs.clear()
             self._busy = False
@@ -373,6 +414,7 @@ class ArtifactsAPI:
     def sync(self) -> SyncReport:
         """Index what the store has and the catalogue lacks (a full listing, whatever the fingerprint)."""
         self._flush()
+        self._deferred = False
         return self.catalogue.sync(self.store)
 
     def verify(self) -> VerifyReport:

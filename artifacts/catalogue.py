@@ -782,6 +782,17 @@ class Catalogue:
         )
         return rows[0][0] if rows else None
 
+    def known(self, artifact_ids: Sequence[str]) -> set[str]:
+        """Those of `artifact_ids` that have a row."""
+        if not artifact_ids:
+            return set()
+        rows = self._lookup(
+            lambda con: con.execute(
+                "SELECT id FROM artifacts WHERE list_contains(?::VARCHAR[], id)", [list(artifact_ids)]
+            ).fetchall()
+        )
+        return {r[0] for r in rows}
+
     def _indexed(self) -> tuple[set[str], dict[str, tuple]]:
         def read(con: duckdb.DuckDBPyConnection) -> tuple[set[str], dict[str, tuple]]:
             ids = {r[0] for r in con.execute("SELECT id FROM artifacts").fetchall()}

@@ -5,6 +5,9 @@ Layout under the root:
     objects/<id[:2]>/<id>.json         the sidecar (ArtifactRecord); written last = the commit point
     tmp/<uuid>/                        staging; a killed writer leaves garbage only here
     runs/<flow_run_id>.json            flow-run records, so the catalogue can be rebuilt from the store
+    index/<key[:2]>/<key>.json         a remote home's content-cache index: step cache key -> artifact id
+                                       (capvector.tasks.runtime.caching), one object per key, so any
+                                       machine answers a cached step with one GET instead of a listing
     quarantine/<time>/<id>/            objects without a sidecar that `gc` moved aside (never deleted)
     changes                            remote stores: a token rewritten after every sidecar or run record
                                        (a catalogue reads it, one small GET, to know whether to list)
@@ -91,6 +94,10 @@ from capvector.durable import fsync_dir, write_atomic
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 CHANGES = "changes"  # a remote store's change token (ArtifactStore._note_change)
+INDEX = "index"  # content-cache index objects (ArtifactStore.put_index_entry)
+KEY_RE = re.compile(r"^[0-9a-f]{64}$")
+# An index entry is a few hundred bytes: anything much larger is not one, and is not read into memory.
+INDEX_ENTRY_MAX = 4096
 FICLONE = 0x40049409  # linux/fs.h: share the source's blocks (btrfs, XFS, bcachefs); copy-on-write
 
 
@@ -1143,6 +1150,35 @@ class ArtifactStore:
             return self.fs.cat_file(self._p(CHANGES)).decode()
         except FileNotFoundError:
             return None
+
+    # ---------------------------------------------------------------- content-cache index
+    def index_entry_path(self, key: str) -> str:
+        """`index/<key[:2]>/<key>.json` of a step cache key (64 hex characters, else PathEscape)."""
+        if not isinstance(key, str) or not KEY_RE.match(key):
+            raise PathEscape(f"cache key {key!r} is not 64 hex characters")
+        return self._p(INDEX, key[:2], f"{key}.json")
+
+    def put_index_entry(self, key: str, data: bytes) -> None:
+        """Write (or replace) the index object of a cache key whole: a temp name and a rename locally,
+        one PUT on an object store. One object per key: writers of different keys never meet, and two
+        writers of one key write the same answer (its lock, capvector.tasks.runtime.caching.step_lock,
+        holds one machine's; on two machines the last PUT stands, each naming a verified artifact)."""
+        path = self.index_entry_path(key)
+        if self.local:
+            self.fs.makedirs(posixpath.dirname(path), exist_ok=True)
+        self._write_small(path, data)
+
+    def index_entry(self, key: str) -> bytes | None:
+        """The bytes of a cache key's index object (one GET, no listing), None when there is none.
+        ValueError when it is larger than any entry (INDEX_ENTRY_MAX): it is not read."""
+        path = self.index_entry_path(key)
+        try:
+            data = self.fs.cat_file(path, start=0, end=INDEX_ENTRY_MAX + 1)
+        except FileNotFoundError:
+            return None
+        if len(data) > INDEX_ENTRY_MAX:
+            raise ValueError(f"{path} is over {INDEX_ENTRY_MAX} bytes: not an index entry")
+        return data
 
     def iter_runs(self) -> Iterator[RunRecord]:
         for p in sorted(self.fs.glob(self._p("runs", "*.json"))):

@@ -190,24 +190,25 @@ def test_unreadable_sidecar_is_not_indexed_and_does_not_fail_the_open(tmp_path):
 
 
 def test_a_remote_store_is_listed_only_when_its_change_token_moved(tmp_path, monkeypatch):
-    """A remote store has no directory times: every commit rewrites its change token, and an open lists
-    the store only when the token differs from the one its last listing saw. A store no writer gave a
-    token (an older version wrote it) is listed when the last listing is older than
-    REMOTE_SYNC_INTERVAL_S."""
+    """A remote store has no directory times: every commit rewrites its change token, and an open's
+    first catalogue read lists the store only when the token differs from the one its last listing
+    saw (an open alone lists nothing: see test_remote_cache_index). A store no writer gave a token
+    (an older version wrote it) is listed when the last listing is older than REMOTE_SYNC_INTERVAL_S."""
     monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "cache"))
     home = f"memory://capvector-sync-{uuid.uuid4().hex}"
     api = ArtifactsAPI(home)
     first = api.register_json({"a": 1}, "dataset", "a")
-    ArtifactsAPI(home)  # the token moved since the first open's listing: listed once more
+    ArtifactsAPI(home).query("SELECT 1")  # the token moved since the first listing: listed once more
     calls = count_sidecar_reads(monkeypatch)
-    ArtifactsAPI(home)
+    ArtifactsAPI(home).query("SELECT 1")
     assert calls["listings"] == 0  # nothing committed since
     late = api.store.put_json({"b": 1}, "checkpoint", "b", parents=[(first.id, "data")])  # no row
     before = dict(calls)
     fresh = ArtifactsAPI(home)
+    assert calls["listings"] == before["listings"]  # not before a read
+    assert [(r.id, r.roles) for r in fresh.ancestors(late.id)] == [(first.id, ["data"])]
     # the new commit: one listing, and only its sidecar read
     assert (calls["listings"] - before["listings"], calls["sidecars"] - before["sidecars"]) == (1, 1)
-    assert [(r.id, r.roles) for r in fresh.ancestors(late.id)] == [(first.id, ["data"])]
 
     # a store without a token (its writers predate it): listed at most once per interval
     old_home = f"memory://capvector-sync-{uuid.uuid4().hex}"

@@ -54,6 +54,7 @@ class StepRunner:
                 except Exception as exc:
                     record_failure(step, exc)
                     raise
+                self._adopt(step, artifact_id)
                 self._report(step, "cached")
                 return artifact_id
         with untagged_steps(), placement(config):  # a cuda step asks the engine for a GPU worker
@@ -65,7 +66,28 @@ class StepRunner:
         outcome, error = _outcome(future)
         if error is not None:
             record_failure(step, error)  # before the progress line: the flow may be failing already
+        elif outcome in ("done", "cached"):
+            self._adopt(step, future)
         self._report(step, outcome)
+
+    def _adopt(self, step: str, result: Any) -> None:
+        """A remote home: index the step's artifact (`result`: its id, or its finished future) and the
+        ancestors it names that this process's catalogue lacks, from their sidecars
+        (`ArtifactsAPI.adopt`, no listing). A worker on another machine wrote its rows only in that
+        machine's catalogue (its local cache); the driver writes those its own queries need. A local
+        home's workers write the home's one catalogue: nothing to do. Never raises (a done-callback):
+        a failure is one warning line, and the driver's next catch-up lists the store instead."""
+        from capvector.artifacts.home import is_local
+
+        if is_local(self.home):
+            return
+        try:
+            from capvector.tasks.runtime.workspace import workspace_for
+
+            artifact_id = result if isinstance(result, str) else result.result(timeout=OUTCOME_WAIT_S)
+            workspace_for(self.home).api.adopt([artifact_id])
+        except Exception as exc:
+            emit(f"warning: step {step!r}: its artifact was not indexed here ({exc})", always=True)
 
     def _report(self, step: str, outcome: str) -> None:
         with self._lock:

@@ -13,6 +13,13 @@ is in the store and verifies is not recomputed (also after a killed flow or a de
 and a missing or corrupt one is recomputed. The index falls back to the catalogue (artifacts record
 their cache key), so finished work is never done twice.
 
+A remote home's folder index lives on each machine (its local cache), so the entry is also written to
+the store as one object per key (`index/<key[:2]>/<key>.json`, ArtifactStore.put_index_entry), after
+the artifact it names is committed. A machine without a local entry asks that object (one GET) before
+the catalogue: a brand-new machine answers a cached plan without listing the store to catch its
+catalogue up. The object is checked as a local entry is (below); one that cannot be read as an entry
+(cut short, not JSON, not a full id) is a miss with one warning line, and the recomputation rewrites it.
+
 The index is not trusted blindly. A hit must be the artifact this key produced: its record's
 `config.cache_key` is the lookup's key (the key hashes kind, inputs, config and code, so this also
 checks the recorded step config), or the entry was written for this key when its computation
@@ -38,6 +45,7 @@ import fcntl
 import hashlib
 import json
 import os
+import re
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -55,6 +63,7 @@ from capvector.tasks.runtime.workspace import Workspace
 
 # Parent roles that name artifacts the step registered itself, beside its result: a hit needs them too.
 COMPANION_ROLES = ("snapshot", "adapter")
+FULL_ID_RE = re.compile(r"^[0-9a-f]{64}$")
 
 # What `cached_step` did, per call, inside a `step_outcomes()` block: "cached" or "produced".
 _outcomes: ContextVar[list[str] | None] = ContextVar("capvector_step_outcomes", default=None)
@@ -171,9 +180,42 @@ def entry_problem(key: str, entry: dict[str, Any] | None, recorded: str | None) 
     return f"the cache names {entry['artifact_id'][:12] if entry else 'an artifact'}, recorded under {where}"
 
 
+def _parse_entry(data: bytes) -> dict[str, Any] | None:
+    """An index object's entry: a JSON object naming a full artifact id (64 hex), else None."""
+    try:
+        entry = json.loads(data)
+    except ValueError:
+        return None
+    ok = isinstance(entry, dict) and isinstance(entry.get("artifact_id"), str)
+    return entry if ok and FULL_ID_RE.match(entry["artifact_id"]) else None
+
+
+def _store_entry(workspace: Workspace, key: str) -> tuple[dict[str, Any] | None, str | None]:
+    """A remote home's index object of `key` (one GET): (entry, None), (None, None) when there is
+    none or it could not be fetched (the catalogue is asked instead), or (None, why) when it cannot
+    be read as an entry."""
+    store = workspace.api.store
+    try:
+        data = store.index_entry(key)
+    except OSError:  # the store did not answer: no reason to distrust the object, nor to use it
+        return None, None
+    except ValueError as e:
+        return None, f"index object of key {key[:16]}… unreadable: {e}"
+    if data is None:
+        return None, None
+    entry = _parse_entry(data)
+    if entry is None:
+        return None, f"index object {store.index_entry_path(key)} is not an index entry"
+    return entry, None
+
+
 def _find(workspace: Workspace, key: str) -> tuple[str | None, str | None]:
     """(artifact id of a valid hit or None, why an answer the index gave was refused or None)."""
     entry = _read_entry(_index_path(workspace, key))
+    if entry is None and not workspace.api.store.local:
+        entry, problem = _store_entry(workspace, key)
+        if problem is not None:
+            return None, problem
     if entry is not None:
         artifact_id = entry["artifact_id"]
     else:
@@ -223,8 +265,13 @@ def remember(workspace: Workspace, key: str, artifact_id: str) -> None:
         recorded = recorded_key(workspace.api.get(artifact_id))
     except (ArtifactError, OSError):
         recorded = None
-    path = _index_path(workspace, key)
-    write_atomic(path, json.dumps({"artifact_id": artifact_id, "cache_key": key, "recorded_under": recorded}))
+    data = json.dumps({"artifact_id": artifact_id, "cache_key": key, "recorded_under": recorded})
+    write_atomic(_index_path(workspace, key), data)
+    if not workspace.api.store.local:  # the machine's folder is not shared: the store's object is
+        try:
+            workspace.api.store.put_index_entry(key, data.encode())
+        except OSError as e:  # the artifact stands; other machines find it by the catalogue instead
+            warn(f"index object of key {key[:16]}… not written to the store ({e})")
 
 
 def index_problems(home: str, api: Any) -> list[tuple[str, str]]:
