@@ -40,8 +40,9 @@ run: install
 
 test: install
 	$(PY) -m ruff check .
-	# two workers, a test file each: most tests wait on subprocesses (a Prefect server, step workers)
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	# two workers, a test file each: most tests wait on subprocesses (a Prefect server, step workers);
+	# files in collection order, the longest first (tests/conftest.py LONGEST_FIRST)
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 lint: install
 	$(PY) -m ruff check .

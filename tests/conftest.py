@@ -20,8 +20,10 @@ import torch  # noqa: E402
 torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 
 
+import fcntl  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
+import shutil  # noqa: E402
 import signal  # noqa: E402
 import socket  # noqa: E402
 import subprocess  # noqa: E402
@@ -122,13 +124,52 @@ def old_report(workspace, evaluations: dict[str, str]) -> str:
     return workspace.api.register_json(report, kind="report", name="report", parents=parents).id
 
 
+def _shared_root(tmp_path_factory) -> Path:
+    """The folder every pytest-xdist worker of this session sees (its base temp's parent under xdist)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+def _smoke_run(tmp_path_factory) -> tuple[Path, dict]:
+    """The session's one cold `capvector run --preset smoke`: its home, which no test writes, and its
+    `--json`. The first pytest-xdist worker to ask runs it under a lock in the workers' shared temp
+    folder; the others wait for it and read what it printed."""
+    root = _shared_root(tmp_path_factory)
+    shared, done = root / "smoke-home-shared", root / "smoke-home-shared.json"
+    with open(root / "smoke-home-shared.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, also if this worker dies
+        if not done.exists():
+            shutil.rmtree(shared, ignore_errors=True)  # a run that failed in another worker
+            proc = run_cli("run", "--preset", "smoke", "--json", home=shared)
+            json.loads(proc.stdout)  # the other workers read the run's whole `--json`
+            done.write_text(proc.stdout)
+    return shared, json.loads(done.read_text())
+
+
+def smoke_copy(tmp_path_factory, home: Path) -> dict:
+    """A copy of the session's smoke run at `home` (made now), and the run's ids, its `report_file`
+    pointing into the copy."""
+    shared, ids = _smoke_run(tmp_path_factory)
+    shutil.copytree(shared, home, dirs_exist_ok=True)
+    ids["report_file"] = str(home / Path(ids["report_file"]).relative_to(shared))
+    return ids
+
+
 @pytest.fixture(scope="session")
 def smoke_home(tmp_path_factory) -> tuple[Path, dict]:
-    """One cold `capvector run --preset smoke` (the recipe as the smallest study) shared by the flow, CLI
-    and scheduling tests; its `--json`: the products' ids and the study's."""
+    """A finished `capvector run --preset smoke` (the recipe as the smallest study) shared by the flow,
+    CLI and scheduling tests of one worker; its `--json`: the products' ids and the study's. The run
+    happens once per session (`_smoke_run`); each worker gets a copy of its own, since tests add
+    evaluations and runs to it and two workers' tests must not write one home at once."""
     home = tmp_path_factory.mktemp("smoke-home")
-    proc = run_cli("run", "--preset", "smoke", "--json", home=home)
-    return home, json.loads(proc.stdout)
+    return home, smoke_copy(tmp_path_factory, home)
+
+
+@pytest.fixture
+def fresh_smoke_home(tmp_path_factory, tmp_path) -> tuple[Path, dict]:
+    """Like `smoke_home`, but a copy of the run no other test has written to."""
+    home = tmp_path / "fresh-smoke-home"
+    return home, smoke_copy(tmp_path_factory, home)
 
 
 @pytest.fixture(scope="session")
@@ -235,3 +276,29 @@ def cluster(tmp_path_factory, s3_endpoint):
     finally:
         for proc, _ in reversed(procs):
             _stop(proc)
+
+
+# Test files that take longest, longest first (cold studies and runs, clusters, servers; measured on 2
+# cores). `make test` hands its two workers whole files in collection order (`--dist loadfile
+# --no-loadscope-reorder`); starting with these keeps a long file from starting last while the other
+# worker has nothing left to run. The rest follow as collected.
+LONGEST_FIRST = (
+    "test_study_resume.py",
+    "test_study_flow.py",
+    "test_pipeline_flow.py",
+    "test_cli.py",
+    "test_cluster_runner.py",
+    "test_calibrate_flow.py",
+    "test_study_rank.py",
+    "test_concurrent_runs.py",
+    "test_prefect_server.py",
+    "test_policy_types_pipeline.py",
+    "test_cli_errors.py",
+    "test_interrupt.py",
+    "test_step_pool.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's order is kept

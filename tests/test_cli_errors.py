@@ -107,14 +107,15 @@ def test_an_error_inside_a_flow_is_one_line_without_leak_report_and_debug_shows_
 
 
 @pytest.mark.slow
-def test_a_step_failing_in_a_worker_is_one_line_naming_the_step(tmp_path):
+def test_a_step_failing_in_a_worker_is_one_line_naming_the_step(fresh_smoke_home):
     """The auxiliary objective's training steps fail in a step worker (an objective layer that does not
-    exist), after the demos and θ_pt: one line naming the problem and the step, not the worker's
-    traceback, the failed states and the flow's UpstreamTaskError naming a task-run id (~940 lines
-    before). Two steps train with the objective, θ_ao and the downstream auxiliary arm, both ready once
-    θ_pt is; the line names whichever failed first."""
+    exist), after the demos and θ_pt (cached: the home is a copy of the session's smoke run): one line
+    naming the problem and the step, not the worker's traceback, the failed states and the flow's
+    UpstreamTaskError naming a task-run id (~940 lines before). Two steps train with the objective, θ_ao
+    and the downstream auxiliary arm, both ready once θ_pt is; the line names whichever failed first."""
+    home, _ = fresh_smoke_home
     proc = run_cli("run", "--preset", "smoke", "--set", "aux.params={layer: 99}",
-                   home=tmp_path / "home", check=False, timeout=900)  # fmt: skip
+                   home=home, check=False, timeout=900)  # fmt: skip
     assert proc.returncode == 2, proc.stderr[-6000:]
     assert "UpstreamTaskError" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-6000:]
     line = _one_error_line(proc, "99")
