@@ -1,83 +1,40 @@
 """`--runner dask --address`: the steps of a run go to an existing Dask scheduler's workers, on
 loopback here (`dask scheduler` and two `dask worker` processes, one offering GPU=1), and give the
 same artifact ids as the default process pool. A step whose config asks for cuda runs only on the
-worker that offers a GPU (scheduling only: nothing here touches a GPU)."""
+worker that offers a GPU (scheduling only: nothing here touches a GPU). The checks are shared with
+the Ray tests (tests/test_ray_runner.py) through tests/loopback_cluster.py."""
 
-import json
-import os
 import re
-import signal
-import socket
-import subprocess
-import sys
 import time
-import uuid
-from pathlib import Path
 
 import pytest
-from conftest import REPO, run_cli
+from loopback_cluster import (
+    LoopbackCluster,
+    check_cuda_steps_run_only_on_the_gpu_worker,
+    check_smoke_run_with_an_s3_home,
+    free_port,
+    start,
+    stop,
+)
 
-from capvector.flows.recipe.plan import pipeline_steps
 from capvector.flows.runtime.task_runners import RunnerConfig, runner_config
-
-TESTS = REPO / "tests"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _start(args: list[str], root: Path, name: str) -> tuple[subprocess.Popen, Path]:
-    """A dask process in its own session and HOME, importing this repository (and tests/)."""
-    home = root / name
-    home.mkdir()
-    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
-    env.update(HOME=str(home), PREFECT_HOME=str(home / "prefect"), PYTHONPATH=f"{REPO}{os.pathsep}{TESTS}")
-    log = root / f"{name}.log"
-    dask = str(Path(sys.executable).with_name("dask"))
-    proc = subprocess.Popen(
-        [dask, *args],
-        cwd=REPO,
-        env=env,
-        stdout=log.open("wb"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    return proc, log
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            pass
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)  # a nanny's worker left behind
-    except ProcessLookupError:
-        pass
-    proc.wait(timeout=30)
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory, s3_endpoint):
-    """(scheduler address, {worker address: log}, GPU worker address): a scheduler and two workers,
-    which reach the loopback S3 server (its address and keys are in their environment)."""
+def cluster(tmp_path_factory, s3_endpoint) -> LoopbackCluster:
+    """A scheduler and two workers (one offering GPU=1), which reach the loopback S3 server (its
+    address and keys are in their environment)."""
     from distributed import Client
 
     root = tmp_path_factory.mktemp("dask-cluster")
-    port = _free_port()
+    port = free_port()
     address = f"tcp://127.0.0.1:{port}"
-    worker_args = ["worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"]
-    procs = [
-        _start(["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], root, "scheduler")
-    ]
+    worker_args = ["dask", "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"]
+    scheduler = ["dask", "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
+    procs = [start(scheduler, root, "scheduler")]
     try:
         for name, extra in (("gpu-worker", ["--resources", "GPU=1"]), ("cpu-worker", [])):
-            procs.append(_start([*worker_args, "--local-directory", str(root / name), *extra], root, name))
+            procs.append(start([*worker_args, "--local-directory", str(root / name), *extra], root, name))
         deadline = time.monotonic() + 120
         with Client(address, timeout=120) as client:
             while len(client.scheduler_info()["workers"]) < 2:
@@ -89,11 +46,13 @@ def cluster(tmp_path_factory, s3_endpoint):
                 time.sleep(0.5)
             workers = client.scheduler_info()["workers"]
         gpu = next(a for a, w in workers.items() if w.get("resources", {}).get("GPU"))
-        logs = {a: root / ("gpu-worker.log" if a == gpu else "cpu-worker.log") for a in workers}
-        yield address, logs, gpu
+        logs = [root / "gpu-worker.log", root / "cpu-worker.log"]
+        yield LoopbackCluster(
+            "dask", address, gpu, lambda: _executed(address), lambda: "\n".join(f.read_text() for f in logs)
+        )
     finally:
         for proc, _ in reversed(procs):
-            _stop(proc)
+            stop(proc)
 
 
 def _executed(address: str) -> dict[str, int]:
@@ -105,78 +64,11 @@ def _executed(address: str) -> dict[str, int]:
 
 
 def test_cuda_steps_run_only_on_the_gpu_worker(cluster):
-    """Two runs, each with its own Prefect server (as two CLI runs have), on the same long-lived
-    workers: the second one once failed every step, its workers still asking the first run's server
-    for the tags' concurrency slots."""
-    address, _, gpu = cluster
-    for attempt in ("first run", "second run"):
-        proc = subprocess.run(
-            [sys.executable, str(TESTS / "gpu_placement_probe.py"), address, "4"],
-            cwd=REPO,
-            env={**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{TESTS}", "CAPVECTOR_QUIET": "1"},
-            capture_output=True,
-            text=True,
-            timeout=300,
-            start_new_session=True,
-        )
-        assert proc.returncode == 0, f"{attempt}: {proc.stderr[-3000:]}"
-        ran_on = json.loads(proc.stdout.strip().splitlines()[-1])
-        assert len(ran_on) == 8
-        cuda = {step: worker for step, worker in ran_on.items() if step.startswith("cuda")}
-        cpu = {step: worker for step, worker in ran_on.items() if step.startswith("cpu")}
-        assert set(cuda.values()) == {gpu}, ran_on
-        assert set(cpu.values()) - {gpu}, ran_on  # the other worker took cpu steps: the GPU one was asked for
-
-
-def _lineage(home: str | Path, artifact_id: str, cache: Path | None = None) -> set[tuple[str, str]]:
-    env = {"CAPVECTOR_CACHE": str(cache)} if cache else None
-    rows = json.loads(run_cli("lineage", artifact_id, "--format", "json", home=home, env=env).stdout)
-    return {(row["id"], row["kind"]) for row in rows}
+    check_cuda_steps_run_only_on_the_gpu_worker(cluster, [cluster.address, cluster.address], n=4)
 
 
 def test_smoke_run_with_an_s3_home_on_the_cluster(cluster, smoke_home, tmp_path):
-    """The home on S3, the steps on the cluster's workers (each with its own local cache, as other
-    machines): the process pool's ids, lineage complete the moment the run returns, and a rerun, also
-    from a fresh driver that never saw the home, dispatches nothing."""
-    import boto3
-
-    address, logs, _ = cluster
-    bucket = f"capvector-{uuid.uuid4().hex[:12]}"
-    boto3.client("s3").create_bucket(Bucket=bucket)
-    home = f"s3://{bucket}/home"
-    driver = {"CAPVECTOR_QUIET": "0", "CAPVECTOR_CACHE": str(tmp_path / "driver-cache")}
-    runner = ["--runner", "dask", "--address", address, "--json"]
-
-    before = _executed(address)
-    started = time.monotonic()
-    proc = run_cli("run", "--preset", "smoke", *runner, home=home, env=driver, timeout=600)
-    elapsed = time.monotonic() - started
-    ids = json.loads(proc.stdout)
-    assert ids == smoke_home[1]
-
-    from capvector.flows.recipe.config import load_config
-
-    after = _executed(address)
-    ran = {worker: after[worker] - before.get(worker, 0) for worker in after}
-    assert sum(ran.values()) == pipeline_steps(load_config("smoke", None)), ran  # every step, on a worker
-    worker_logs = "\n".join(log.read_text() for log in logs.values())
-    assert "[pretrain θ_pt] 30/30 steps" in worker_logs  # a step's progress, printed where it ran
-
-    # the terminal: progress lines, no Dask or Prefect INFO records, no teardown noise
-    assert "[pipeline smoke 15/15]" in proc.stderr
-    assert not re.search(r" - INFO - |\| INFO +\|", proc.stderr), proc.stderr[-3000:]
-    assert "killed by signal" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-3000:]
-
-    # what the workers registered is in the driver's catalogue at once: the local run's lineage
-    assert _lineage(home, ids["report"], tmp_path / "driver-cache") == _lineage(smoke_home[0], ids["report"])
-
-    for name, cache in (("rerun", "driver-cache"), ("fresh driver", "fresh-driver-cache")):
-        before = _executed(address)
-        env = {"CAPVECTOR_CACHE": str(tmp_path / cache)}
-        again = run_cli("run", "--preset", "smoke", *runner, home=home, env=env, timeout=600)
-        assert json.loads(again.stdout) == ids, name
-        assert _executed(address) == before, f"{name}: steps were sent to the workers again"
-    print(f"smoke run on the dask cluster with an S3 home: {elapsed:.0f} s, steps per worker {ran}")
+    check_smoke_run_with_an_s3_home(cluster, smoke_home, tmp_path)
 
 
 def test_runner_options_are_checked():
