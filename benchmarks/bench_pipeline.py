@@ -33,14 +33,14 @@ sys.path.insert(0, str(REPO))
 RESULTS = REPO / "benchmarks" / "results"
 
 EMPTY_FLOW = """
-import capvector.flows.recipe.flow
+import capvector.flows.study.flow
 from prefect import flow
 @flow
 def empty():
     return 1
 empty()
 """
-IMPORT_ONLY = "import capvector.flows.recipe.flow"
+IMPORT_ONLY = "import capvector.flows.study.flow"
 
 
 def _children() -> dict[int, list[int]]:

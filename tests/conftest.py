@@ -23,6 +23,7 @@ torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 import json  # noqa: E402
 import logging  # noqa: E402
 import signal  # noqa: E402
+import socket  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -31,6 +32,7 @@ from pathlib import Path  # noqa: E402
 import pytest  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
+TESTS = REPO / "tests"
 
 
 def run_in_session(argv: list[str], env: dict[str, str], timeout: float) -> subprocess.CompletedProcess:
@@ -83,9 +85,47 @@ def settled_task_states(flow_run_id, timeout: float = 60) -> dict[str, str]:
             time.sleep(0.5)
 
 
+def old_report(workspace, evaluations: dict[str, str]) -> str:
+    """A `report` artifact as `capvector run` wrote it before the recipe run once became a study: its
+    writer is gone, its records stay readable (`capvector report ID`). One row per arm ("<arm>/seed<k>"
+    labels) from the evaluations' scores, each run's lr and parameters from its checkpoint's record."""
+    from capvector.artifacts.scores import read_scores
+    from capvector.tasks.steps import reporting as r
+
+    scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=evaluations.values())}
+    runs: dict[str, list[r.ReportRun]] = {}
+    for label, eval_id in sorted(evaluations.items()):
+        score, checkpoint = scores[eval_id], workspace.api.get(scores[eval_id].checkpoint_id)
+        run = r.ReportRun(
+            label=label,
+            evaluation_id=eval_id,
+            checkpoint_id=checkpoint.id,
+            success_rates=score.success_rates,
+            mean_success=score.mean_success,
+            trainable_parameters=checkpoint.config.get("summary", {}).get("trainable_parameters"),
+            lr=r.trained_with(checkpoint.config, "lr"),
+        )
+        runs.setdefault(label.split("/")[0], []).append(run)
+    arms = {
+        arm: r.ArmRow(
+            overall=r.MeanStd.of([run.mean_success for run in rows]),
+            per_task={t: r.MeanStd.of([run.success_rates[t] for run in rows]) for t in rows[0].success_rates},
+            trainable_parameters=rows[0].trainable_parameters,
+            lr=rows[0].lr,
+            runs=rows,
+        )
+        for arm, rows in runs.items()
+    }
+    report = r.Report(fingerprint=next(iter(scores.values())).fingerprint, arms=arms)
+    report.markdown = r.markdown_table(report)
+    parents = [(eval_id, "evaluation") for eval_id in evaluations.values()]
+    return workspace.api.register_json(report, kind="report", name="report", parents=parents).id
+
+
 @pytest.fixture(scope="session")
 def smoke_home(tmp_path_factory) -> tuple[Path, dict]:
-    """One cold `capvector run --preset smoke` shared by the flow, CLI and scheduling tests."""
+    """One cold `capvector run --preset smoke` (the recipe as the smallest study) shared by the flow, CLI
+    and scheduling tests; its `--json`: the products' ids and the study's."""
     home = tmp_path_factory.mktemp("smoke-home")
     proc = run_cli("run", "--preset", "smoke", "--json", home=home)
     return home, json.loads(proc.stdout)
@@ -121,3 +161,77 @@ def s3_endpoint():
             else:
                 os.environ[k] = v
         server.stop()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(args: list[str], root: Path, name: str) -> tuple[subprocess.Popen, Path]:
+    """A dask process in its own session and HOME, importing this repository (and tests/)."""
+    home = root / name
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    env.update(HOME=str(home), PREFECT_HOME=str(home / "prefect"), PYTHONPATH=f"{REPO}{os.pathsep}{TESTS}")
+    log = root / f"{name}.log"
+    dask = str(Path(sys.executable).with_name("dask"))
+    proc = subprocess.Popen(
+        [dask, *args],
+        cwd=REPO,
+        env=env,
+        stdout=log.open("wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    return proc, log
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            pass
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)  # a nanny's worker left behind
+    except ProcessLookupError:
+        pass
+    proc.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory, s3_endpoint):
+    """(scheduler address, {worker address: log}, GPU worker address): a scheduler and two workers,
+    which reach the loopback S3 server (its address and keys are in their environment). One per test
+    module: a module that kills a driver leaves no task of it running on another module's workers."""
+    from distributed import Client
+
+    root = tmp_path_factory.mktemp("dask-cluster")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    worker_args = ["worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"]
+    procs = [
+        _start(["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], root, "scheduler")
+    ]
+    try:
+        for name, extra in (("gpu-worker", ["--resources", "GPU=1"]), ("cpu-worker", [])):
+            procs.append(_start([*worker_args, "--local-directory", str(root / name), *extra], root, name))
+        deadline = time.monotonic() + 120
+        with Client(address, timeout=120) as client:
+            while len(client.scheduler_info()["workers"]) < 2:
+                dead = [log for proc, log in procs if proc.poll() is not None]
+                if dead or time.monotonic() > deadline:
+                    pytest.fail(
+                        "dask cluster did not start:\n" + "\n".join(p.read_text()[-2000:] for p in dead)
+                    )
+                time.sleep(0.5)
+            workers = client.scheduler_info()["workers"]
+        gpu = next(a for a, w in workers.items() if w.get("resources", {}).get("GPU"))
+        logs = {a: root / ("gpu-worker.log" if a == gpu else "cpu-worker.log") for a in workers}
+        yield address, logs, gpu
+    finally:
+        for proc, _ in reversed(procs):
+            _stop(proc)

@@ -93,6 +93,20 @@ def lineage(home: str | Path, artifact_id: str, cache: Path | None = None) -> se
     return {(row["id"], row["kind"]) for row in rows}
 
 
+def smoke_steps() -> int:
+    """How many steps `capvector run --preset smoke` plans (the recipe as the smallest study)."""
+    from capvector.flows.recipe.config import load_config
+    from capvector.flows.study.plan import study_plan
+    from capvector.flows.study.recipe import recipe_study
+
+    return len(study_plan(recipe_study(load_config("smoke", None))))
+
+
+def without_report_file(ids: dict[str, str]) -> dict[str, str]:
+    """A run's `--json` less `report_file`: the Markdown report's path, in the cache of the run's home."""
+    return {k: v for k, v in ids.items() if k != "report_file"}
+
+
 def wait_for_executed(cluster: LoopbackCluster, before: dict[str, int], steps: int) -> dict[str, int]:
     """Steps each worker ran since `before`, once they add up to `steps` (Ray records a finished task
     a moment after its result is back) or after 30 s."""
@@ -111,9 +125,6 @@ def check_smoke_run_with_an_s3_home(cluster: LoopbackCluster, smoke_home, tmp_pa
     from a fresh driver that never saw the home, dispatches nothing."""
     import boto3
 
-    from capvector.flows.recipe.config import load_config
-    from capvector.flows.recipe.plan import pipeline_steps
-
     bucket = f"capvector-{uuid.uuid4().hex[:12]}"
     boto3.client("s3").create_bucket(Bucket=bucket)
     home = f"s3://{bucket}/home"
@@ -125,15 +136,17 @@ def check_smoke_run_with_an_s3_home(cluster: LoopbackCluster, smoke_home, tmp_pa
     proc = run_cli("run", "--preset", "smoke", *runner, home=home, env=driver, timeout=600)
     elapsed = time.monotonic() - started
     ids = json.loads(proc.stdout)
-    assert ids == smoke_home[1]
+    assert without_report_file(ids) == without_report_file(smoke_home[1])
+    # the Markdown report: in the driver's cache of the home, not in a local folder `s3:` of the cwd
+    assert Path(ids["report_file"]).is_relative_to(tmp_path / "driver-cache"), ids["report_file"]
 
-    steps = pipeline_steps(load_config("smoke", None))
+    steps = smoke_steps()
     ran = wait_for_executed(cluster, before, steps)
     assert sum(ran.values()) == steps, ran  # every step, on a worker
     assert "[pretrain θ_pt] 30/30 steps" in cluster.worker_output()  # a step's progress, printed where it ran
 
     # the terminal: progress lines, no engine or Prefect INFO records, no teardown noise
-    assert "[pipeline smoke 15/15]" in proc.stderr
+    assert f"[study smoke {steps}/{steps}]" in proc.stderr
     assert not re.search(r" - INFO - |\| INFO +\||\tINFO ", proc.stderr), proc.stderr[-3000:]
     assert "killed by signal" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-3000:]
 
@@ -143,8 +156,10 @@ def check_smoke_run_with_an_s3_home(cluster: LoopbackCluster, smoke_home, tmp_pa
     for name, cache in (("rerun", "driver-cache"), ("fresh driver", "fresh-driver-cache")):
         before = cluster.executed()
         env = {"CAPVECTOR_CACHE": str(tmp_path / cache)}
-        again = run_cli("run", "--preset", "smoke", *runner, home=home, env=env, timeout=600)
-        assert json.loads(again.stdout) == ids, name
+        proc = run_cli("run", "--preset", "smoke", *runner, home=home, env=env, timeout=600)
+        again = json.loads(proc.stdout)
+        assert Path(again.pop("report_file")).is_relative_to(tmp_path / cache), name  # each driver's own
+        assert again == without_report_file(ids), name
         assert cluster.executed() == before, f"{name}: steps were sent to the workers again"
     print(f"smoke run on the {cluster.engine} cluster, S3 home: {elapsed:.0f} s, steps per worker {ran}")
 

@@ -312,7 +312,7 @@ def test_lineage_formats_and_descendants(smoke_home):
         by_id[ids["auxiliary"]]["roles"][-1] == "minuend"
         and by_id[ids["standard"]]["roles"][-1] == "subtrahend"
     )
-    assert set(ids["datasets"].values()) <= set(by_id)
+    assert {ids["datasets"][k] for k in ("pretrain", "extraction", "downstream")} <= set(by_id)
 
     mermaid = invoke(home, "lineage", capvector, "--format", "mermaid").stdout
     assert mermaid.startswith("graph BT")
@@ -362,13 +362,13 @@ def test_scores_compare_and_report(smoke_home, tmp_path):
     out = tmp_path / "tmp" / "results.md"
     invoke(home, "report", ids["report"], "-o", str(out))
     text = out.read_text()
-    assert text.startswith("#") and ids["report"][:12] in text
+    assert text.startswith("# Study `smoke`") and ids["report"][:12] in text  # a run's report is a study's
     figures = re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", text)
-    assert {"results_comparison.png", "results_vector.png", "results_curves.png"} <= set(figures), figures
+    assert {"results_curves.png", "results_forest.png", "results_tasks.png"} <= set(figures), figures
     for name in figures:
         assert (out.parent / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
-    for arm in ("sft", "aux", "capvector"):
-        assert ids["evaluations"][f"{arm}/seed0"][:12] in text, arm
+    for arm in ("| SFT |", "| auxiliary SFT |", "| CapVector |"):
+        assert arm in text, arm
 
 
 def _session_alive(sid: int) -> list[int]:
@@ -575,7 +575,7 @@ def test_every_read_command_prints_json_with_json(smoke_home, ckpts, tmp_path):
         assert got[name] == json.loads(invoke(home, *args, "--format", "json").stdout), name
     assert {r["checkpoint_id"] for r in got["scores"]} >= {capvector}
     assert [r["checkpoint_id"] for r in got["compare"]["rows"]] == [capvector, sft]
-    assert got["report"] == {"path": str(tmp_path / "report.md"), "kind": "report", "id": ids["report"]}
+    assert got["report"] == {"path": str(tmp_path / "report.md"), "kind": "study", "id": ids["report"]}
     assert {r["kind"] for r in got["sql"]} >= {"checkpoint", "evaluation"}
     assert {r["id"] for r in got["runs"]} >= {capvector, sft}
     assert got["export"]["runs"]["rows"] == len(got["runs"])
@@ -672,15 +672,15 @@ def test_a_fully_cached_run_is_answered_before_any_flow_and_dry_run_shows_the_pl
     assert "every one cached: answered without a flow run" in log
     assert ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM runs")[1][0][0] == runs_before
     dry = run_cli("run", "--preset", "smoke", "--dry-run", home=home).stdout
-    assert dry.count("cached  ") == 15 and "all 15 steps cached" in dry
+    assert dry.count("cached  ") == 34 and "all 34 steps cached" in dry
     artifacts_before = ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM artifacts")[1][0][0]
     changed = run_cli("run", "--preset", "smoke", "--set", "evaluation.horizon=31", "--dry-run", home=home)
     lines = changed.stdout.splitlines()
     first = next(i for i, line in enumerate(lines) if line.startswith("to run  "))
-    assert lines[first].startswith("to run  evaluate ")  # the horizon changes evaluations only
+    assert lines[first] == "to run  validate θ_pt on D_ext"  # the horizon changes evaluations only
     listed = [line for line in lines if line.startswith(("cached  ", "to run  ", "then    "))]
-    assert len(listed) == 15  # the whole plan, step by step
-    assert re.search(r"\d+ of 15 steps to run or to look up once their inputs exist", changed.stdout)
+    assert len(listed) == 34  # the whole plan, step by step
+    assert re.search(r"\d+ of 34 steps to run or to look up once their inputs exist", changed.stdout)
     assert ArtifactsAPI(str(home)).query_rows("SELECT count(*) FROM artifacts")[1][0][0] == artifacts_before
 
 

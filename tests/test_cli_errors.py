@@ -118,7 +118,7 @@ def test_a_step_failing_in_a_worker_is_one_line_naming_the_step(tmp_path):
     assert proc.returncode == 2, proc.stderr[-6000:]
     assert "UpstreamTaskError" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-6000:]
     line = _one_error_line(proc, "99")
-    assert re.search(r"step '(auxiliary SFT θ_ao|downstream aux seed \d+)' failed", line), line
+    assert re.search(r"step '(draw 0 auxiliary SFT θ_ao|downstream aux seed \d+)' failed", line), line
     assert "nanobind" not in proc.stderr, line
 
 

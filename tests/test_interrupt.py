@@ -24,7 +24,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 TRAINING = re.compile(r"\[pretrain θ_pt\] \d+/\d+ steps")
-EVALUATION = re.compile(r"\[evaluate \S+\] \d+/\d+ episodes")
+EVALUATION = re.compile(r"\[(?:validate|test) [^\]]+\] \d+/\d+ episodes")  # a run is a study: its evaluations
 EXIT_LIMIT_S = 15
 MAX_LINES_AFTER = 5
 

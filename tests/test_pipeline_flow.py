@@ -1,4 +1,6 @@
-"""The `pipeline` flow end to end on the smoke preset: caching, partial re-runs, lineage, resume."""
+"""`capvector run` end to end on the smoke preset: the recipe run once, as the smallest study (one γ draw,
+nothing chosen, no gate; capvector.flows.study.recipe) on the study flow: caching, partial re-runs,
+lineage, resume, the sweep beside it."""
 
 import json
 import os
@@ -15,59 +17,73 @@ from capvector.artifacts.api import ArtifactsAPI
 from capvector.artifacts.scores import read_scores
 from capvector.core.simulation.demos import VALIDATION_SEED_BASE
 from capvector.flows.recipe.config import load_config
-from capvector.flows.recipe.flow import pipeline
-from capvector.flows.recipe.report import write_report
 from capvector.flows.recipe.sweep import sweep_flow
-from capvector.tasks.runtime.workspace import Workspace
-from capvector.tasks.steps import reporting
+from capvector.flows.study.flow import study_flow
+from capvector.flows.study.recipe import recipe_study
 
 UPSTREAM = ("pretrained", "standard", "auxiliary", "vector", "meta")
+KINDS = {  # 5 demo sets (3 + 2 held out); θ_pt, θ_ft, θ_ao (each kept at 10 and 15 steps too), θ_meta,
+    # θ_null, three arms; γ and γ_null; 9 tests and D_ext validations; 9 held-out losses; the study
+    "dataset": 5,
+    "checkpoint": 12,
+    "vector": 2,
+    "vector_stats": 1,
+    "evaluation": 9,
+    "measurement": 9,
+    "study": 1,
+}
+STEPS = 34
 
 
 def _artifact_count(home) -> int:
     return int(ArtifactsAPI(str(home)).query("SELECT count(*) AS n FROM artifacts")["n"][0])
 
 
+def _ids(result: dict) -> dict:
+    """What `capvector run --json` prints, from the flow's result (the report file aside)."""
+    return {**result["products"], "report": result["report"], "selections": result["selections"]}
+
+
 def _run(home, overrides=()):
-    config = load_config("smoke", list(overrides)).model_dump(mode="json")
-    state = pipeline(config, str(home), return_state=True)
+    config = recipe_study(load_config("smoke", list(overrides))).model_dump(mode="json")
+    state = study_flow(config, str(home), return_state=True)
     assert state.is_completed(), state
-    return state.result(), settled_task_states(state.state_details.flow_run_id)
+    return _ids(state.result()), settled_task_states(state.state_details.flow_run_id)
 
 
 def test_cold_run_produces_every_artifact(smoke_home):
     home, ids = smoke_home
     api = ArtifactsAPI(str(home))
-    cold_run = "SELECT flow_run_id FROM runs WHERE flow_name = 'pipeline' ORDER BY started_at LIMIT 1"
+    cold_run = "SELECT flow_run_id FROM runs WHERE flow_name = 'study' ORDER BY started_at LIMIT 1"
     kinds = dict(
         api.query(
             f"SELECT kind, count(*) AS n FROM artifacts WHERE flow_run_id = ({cold_run}) GROUP BY kind"
         ).values.tolist()
     )
-    assert kinds["dataset"] == 3
-    assert kinds["checkpoint"] == 3 + 1 + 3  # θ_pt, θ_ft, θ_ao; θ_meta; three downstream arms
-    assert kinds["vector"] == 1 and kinds["vector_stats"] == 1
-    assert kinds["evaluation"] == 3 and kinds["report"] == 1
-    report = api.store.open_json(ids["report"])
-    assert set(report["arms"]) == {"sft", "aux", "capvector"}
+    assert kinds == KINDS
+    study = api.store.open_json(ids["report"])
+    assert api.get(ids["report"]).kind == "study"
+    assert study["design"]["given"] and study["design"]["draws"] == [0] and study["selections"] == {}
+    assert set(ids["checkpoints"]) == set(ids["evaluations"]) == {"sft/seed0", "aux/seed0", "capvector/seed0"}
     episodes = api.query(
         "SELECT count(*) AS n FROM eval_episodes WHERE evaluation_id IN (?, ?, ?)",
         list(ids["evaluations"].values()),
     )
     assert episodes["n"][0] == 3 * 2  # arms × episodes
+    assert (home / "reports").is_dir() and ids["report_file"].endswith(".md")
 
 
 def test_progress_of_the_run_and_of_each_long_step_is_in_the_log_file(smoke_home):
-    """The CLI's log file (also written with CAPVECTOR_QUIET, as here) has the pipeline's step k of N
+    """The CLI's log file (also written with CAPVECTOR_QUIET, as here) has the study's step k of N
     and the step workers' demo, training and evaluation lines."""
     home, _ = smoke_home
     logs = sorted((home / "logs").glob("run*.log"))
     assert logs, f"no run log in {home / 'logs'}"
     text = logs[0].read_text()
-    finished = [line for line in text.splitlines() if "[pipeline smoke " in line and "/15]" in line]
-    assert len(finished) == 15 and all(line.endswith(": done") for line in finished), text
+    finished = [line for line in text.splitlines() if "[study smoke " in line and f"/{STEPS}]" in line]
+    assert len(finished) == STEPS and all(line.endswith(": done") for line in finished), text
     for long_step in ("[demos pretrain] 4/4 episodes", "[pretrain θ_pt] 30/30 steps, loss ",
-                      "[evaluate sft/seed0] 2/2 episodes"):  # fmt: skip
+                      "[test sft seed 0 @ 20] 2/2 episodes"):  # fmt: skip
         assert long_step in text, f"{long_step!r} missing from the run log:\n{text}"
 
 
@@ -75,7 +91,7 @@ def test_second_run_hits_every_cache_and_creates_nothing(smoke_home):
     home, ids = smoke_home
     before = _artifact_count(home)
     again, states = _run(home)
-    assert again == ids
+    assert again == {k: v for k, v in ids.items() if k != "report_file"}
     assert _artifact_count(home) == before
     assert states and set(states.values()) == {"Cached"}, states
 
@@ -88,7 +104,7 @@ def test_lineage_of_capvector_checkpoint_reaches_demos_through_the_vector(smoke_
         assert ids[key] in by_id, key
     assert by_id[ids["meta"]].roles == ["init"]
     assert "minuend" in by_id[ids["auxiliary"]].roles and "subtrahend" in by_id[ids["standard"]].roles
-    assert set(ids["datasets"].values()) <= set(by_id)
+    assert {ids["datasets"][k] for k in ("pretrain", "extraction", "downstream")} <= set(by_id)
     vectors = ArtifactsAPI(str(home)).vectors_merged_into(ids["checkpoints"]["capvector/seed0"])
     assert [(v.vector_id, v.alpha) for v in vectors] == [(ids["vector"], 1.1)]
 
@@ -101,9 +117,12 @@ def test_changing_a_downstream_setting_reruns_only_the_steps_below(smoke_home):
         assert changed[key] == ids[key], key
     assert set(changed["checkpoints"].values()).isdisjoint(ids["checkpoints"].values())
     ran = {name for name, state in states.items() if state != "Cached"}
-    assert ran and all(n.startswith(("downstream", "evaluate", "report")) for n in ran), ran
+    assert ran and all(
+        n.startswith(("downstream", "test", "held-out loss D_down", "analyse")) for n in ran
+    ), ran
     # task-run names spell Greek letters in ASCII (the Prefect UI's graph drops them)
-    assert {n for n, s in states.items() if s == "Cached"} >= {"pretrain theta_pt", "capability vector gamma"}
+    cached = {n for n, s in states.items() if s == "Cached"}
+    assert cached >= {"pretrain theta_pt", "draw 0 capability vector gamma"}
 
 
 def test_a_cache_hit_whose_artifact_vanished_recomputes_it(smoke_home):
@@ -113,7 +132,7 @@ def test_a_cache_hit_whose_artifact_vanished_recomputes_it(smoke_home):
     if os.path.exists(api.store.object_path(ids["vector"])):
         os.remove(api.store.object_path(ids["vector"]))
     again, states = _run(home)
-    assert states["capability vector gamma"] == "Completed"
+    assert states["draw 0 capability vector gamma"] == "Completed"
     assert states["pretrain theta_pt"] == "Cached"
     assert again["vector"] == ids["vector"]  # same inputs, same bytes, same id
     api.path(ids["vector"], verify=True)  # restored and intact
@@ -130,7 +149,7 @@ def test_a_killed_flow_resumes_from_cached_steps(smoke_home, tmp_path):
     index = home / "step-cache"
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None:
-        if index.exists() and len(list(index.glob("*.json"))) >= 5:  # demos ×3, θ_pt, one more
+        if index.exists() and len(list(index.glob("*.json"))) >= 7:  # demos ×5, θ_pt, one more
             break
         time.sleep(0.2)
     if proc.poll() is not None:
@@ -145,46 +164,27 @@ def test_a_killed_flow_resumes_from_cached_steps(smoke_home, tmp_path):
     assert resumed["checkpoints"] == reference["checkpoints"], (resumed, reference)
 
     frame = ArtifactsAPI(str(home)).query("SELECT kind, count(*) AS n FROM artifacts GROUP BY kind")
-    assert dict(frame.values.tolist()) == {
-        "dataset": 3,
-        "checkpoint": 7,
-        "vector": 1,
-        "vector_stats": 1,
-        "evaluation": 3,
-        "report": 1,
-    }
+    assert dict(frame.values.tolist()) == KINDS
 
 
-def test_pixels_run_tests_the_same_checkpoints_through_the_ood_camera(tmp_path):
+def test_a_pixels_run_says_how_to_test_its_checkpoints_through_the_ood_camera():
+    """A study tests through its own camera: `capvector run` prints the `capvector evaluate` command that
+    tests its final checkpoints through `evaluation.ood_camera`, with the run's protocol."""
+    from capvector.flows.cli.experiment_commands import _ood_hint
+
     overrides = [
         "data.obs_mode=pixels", "policy.obs_mode=pixels", "data.image_size=32", "policy.image_size=32",
-        "arms=[sft]", "evaluation.ood_camera=corner3",
+        "evaluation.ood_camera=corner3",
     ]  # fmt: skip
-    config = load_config("smoke", overrides).model_dump(mode="json")
-    state = pipeline(config, str(tmp_path / "home"), return_state=True)
-    assert state.is_completed(), state
-    ids = state.result()
-    api = ArtifactsAPI(str(tmp_path / "home"))
-    main, ood = (api.store.open_json(ids[k]) for k in ("report", "ood_report"))
-    assert main["fingerprint"] != ood["fingerprint"]
-    main_run, ood_run = main["arms"]["sft"]["runs"][0], ood["arms"]["sft"]["runs"][0]
-    assert main_run["checkpoint_id"] == ood_run["checkpoint_id"] == ids["checkpoints"]["sft/seed0"]
-    cameras = {api.get(r["evaluation_id"]).config["protocol"]["camera"] for r in (main_run, ood_run)}
-    assert cameras == {"corner2", "corner3"}
-    summary = api.get(main_run["checkpoint_id"]).config["summary"]
-    wall = summary["steps"] / summary["steps_per_s"]
-    # measured times are provenance: in the checkpoint's record, not in the report's content (its id)
-    workspace = Workspace(str(tmp_path / "home"))
-    assert reporting.timings(workspace, reporting.Report.model_validate(main))["sft"]["train_wall_s"] == (
-        pytest.approx(wall)
+    recipe = load_config("smoke", overrides)
+    hint = _ood_hint(recipe, {"checkpoints": {"sft/seed0": "a" * 64, "capvector/seed0": "b" * 64}})
+    assert hint.endswith(
+        f"capvector evaluate {'a' * 12} {'b' * 12} --tasks button-press-topdown-v3 --obs-mode pixels "
+        "--camera corner3 --image-size 32 --horizon 40"
     )
-    lr = config["downstream"]["lr"]
-    assert f"| {summary['trainable_parameters']} | {lr:g} | 1 |" in main["markdown"]
-    text = write_report(workspace, ids["report"], tmp_path / "report.md").read_text()
-    assert f"| {wall:.0f} | {summary['trainable_parameters']} | {lr:g} | 1 |" in text
 
 
-def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipeline_steps(smoke_home, tmp_path):
+def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_runs_demos_and_base(smoke_home):
     home, ids = smoke_home
     config = load_config("smoke", ["sweep.alphas=[0.5, 1.1]", "sweep.lambdas_absolute=[1.0e-4]"])
     result = sweep_flow(config.model_dump(mode="json"), str(home))
@@ -197,23 +197,12 @@ def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_pipelin
         assert evaluation["eval"]["seed_base"] == VALIDATION_SEED_BASE  # never the test seeds
         (scores,) = read_scores(api, evaluations=[evaluation_id])
         assert scores.mean_success == row["validation_success"]
-    # α = 1.1, λ = 1e-4 is the preset's own CapVector arm: the sweep reuses the pipeline's checkpoint
-    assert result["grid"][1]["checkpoint_ids"] == [ids["checkpoints"]["capvector/seed0"]]
-    assert result["grid"][0]["checkpoint_ids"][0] not in ids["checkpoints"].values()
     assert api.get(result["sweep"]).kind == "selection"
+    ancestors = {r.id for r in api.ancestors(result["grid"][1]["checkpoint_ids"][0])}
+    assert {ids["pretrained"], ids["datasets"]["downstream"]} <= ancestors  # the run's demos and θ_pt
 
     one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas_absolute=[1.0e-4]"]).model_dump(
         mode="json"
     )
     one_cell = sweep_flow(one_cell, str(home))
     assert one_cell["grid"] == result["grid"][1:]  # every step cached
-    sweeps = [result["sweep"], one_cell["sweep"], result["sweep"]]
-    text = write_report(Workspace(str(home)), ids["report"], tmp_path / "r.md", sweep_ids=sweeps).read_text()
-    grid = f"## α × λ sweep `{result['sweep'][:12]}` (validation goal variations, arm `capvector`, seed 0"
-    assert text.count(f"{grid}, lr {config.downstream.lr:g})") == 1  # a repeated id is shown once
-    # the one-cell sweep (how an lr is chosen) is a row of the learning-rate table, not a grid of its own
-    assert f"## α × λ sweep `{one_cell['sweep'][:12]}`" not in text
-    cell = one_cell["grid"][0]
-    success = f"{100 * cell['validation_success']:.1f}% **(best)**"
-    lr = f"{config.downstream.lr:g}"
-    assert f"| capvector | {lr} | 1.1 | λ_abs=0.0001 | {success} | 0 | `{one_cell['sweep'][:12]}` |" in text

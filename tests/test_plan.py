@@ -7,9 +7,9 @@ from __future__ import annotations
 import pytest
 
 from capvector.flows.recipe.config import load_config
-from capvector.flows.recipe.plan import pipeline_plan
 from capvector.flows.study.config import load_study
 from capvector.flows.study.plan import gated_study_plan, study_plan, study_steps
+from capvector.flows.study.recipe import recipe_study
 from capvector.tasks.steps.training import OrthogonalSettings
 
 
@@ -71,14 +71,55 @@ def test_a_passed_gate_grows_the_announced_total_to_the_whole_plan(capfd):
     assert f"gate passed: {after} more steps, {before + after} in all" in capfd.readouterr().err
 
 
-def test_another_seed_adds_a_run_and_its_evaluation_per_arm_to_the_pipeline():
+@pytest.mark.parametrize("preset", ["smoke", "quick", "hard", "paper", "paper-cpu"])
+def test_the_recipe_run_once_is_the_smallest_study_with_the_presets_values(preset):
+    """Issue 35: `capvector run` is a study of one γ draw, the preset's seeds, no gate, nothing chosen (no
+    tuning run, no selection: α, λ, the lrs and the auxiliary weight as the preset sets them), the final
+    budget alone; the adapter forms of CapVector are study arms from θ_meta, those of SFT variants."""
+    recipe = load_config(preset)
+    cfg = recipe_study(recipe)
+    assert (cfg.study.draws, cfg.study.tuning_seeds, cfg.study.gate) == ([recipe.extraction.seed], [], False)
+    assert cfg.curve_budgets == [recipe.downstream.steps]
+    plan = study_plan(cfg)
+    assert not [p.step for p in plan if p.step.startswith(("tune", "select", "validate capvector"))]
+    assert labels(plan)[-1] == f"analyse study {recipe.name}" and len(set(labels(plan))) == len(plan)
+    by_label = {p.step: p for p in plan}
+    assert by_label["draw 0 merge θ_meta"].config["alpha"] == recipe.alpha
+    for arm in recipe.arms:
+        runs = [p for p in plan if p.step.startswith(f"downstream {arm} ")]
+        assert len(runs) == len(recipe.seeds), arm
+        want = recipe.downstream_step(arm, recipe.seeds[0])
+        got = runs[0].config
+        assert (got["adapter"], got["train"]["lr"]) == (want.adapter, want.train.lr), arm
+        if want.orthogonal is not None:
+            assert got["orthogonal"] == want.orthogonal.model_dump(mode="json"), arm
+    design = by_label[f"analyse study {recipe.name}"].config
+    assert design["given"] and design["chosen"]["alpha"] == recipe.alpha
+    assert design["chosen"]["lambda_absolute"] == recipe.orthogonal.lambda_absolute
+
+
+def test_another_seed_adds_a_run_its_test_and_its_held_out_loss_per_arm_to_a_run():
     config = load_config("smoke")
-    one = labels(pipeline_plan(config))
-    two = labels(pipeline_plan(config.model_copy(update={"seeds": [*config.seeds, 7]})))
+    one = labels(study_plan(recipe_study(config)))
+    two = labels(study_plan(recipe_study(config.model_copy(update={"seeds": [*config.seeds, 7]}))))
     added = sorted(step for step in two if step not in one)
+    final = config.downstream.steps
+    names = {"sft": "sft", "aux": "aux", "capvector": "capvector draw 0"}
     assert added == sorted(
-        [f"downstream {arm} seed 7" for arm in config.arms] + [f"evaluate {arm}/seed7" for arm in config.arms]
+        f"{what} {names[arm]} seed 7{at}"
+        for arm in config.arms
+        for what, at in (("downstream", ""), ("test", f" @ {final}"), ("held-out loss D_down", ""))
     )
+
+
+def test_a_study_that_chooses_nothing_takes_one_value_per_grid():
+    with pytest.raises(
+        ValueError,
+        match=r"tuning_seeds is empty \(nothing is chosen\) but .*study\.alphas.* hold several values",
+    ):
+        load_study("study-smoke", ["study.tuning_seeds=[]", "study.alphas=[0.5, 1.0]"])
+    with pytest.raises(ValueError, match="add sft to arms"):
+        recipe_study(load_config("smoke", ["arms=[capvector]"]))
 
 
 def test_a_second_tuning_seed_repeats_every_tuning_run_and_each_selection_averages_both():
@@ -223,3 +264,34 @@ def test_a_lambda_cell_reads_the_same_in_every_report_including_sweeps_recorded_
     assert lambda_label({"alpha": 1.1, "lambda_absolute": 1e-4}) == "λ_abs=0.0001"
     assert lambda_label({"alpha": 1.1, "lambda": 1e-4}) == "λ_abs=0.0001"  # an old sweep
     assert lambda_label({"alpha": 1.1}) == "λ none"
+
+
+GATE_ONLY = ["study.gate=true", "study.arms=[sft,aux,sft_from_ao,sft_from_ft]"]
+
+
+def test_a_gate_only_study_is_the_gated_plan_up_to_its_gate_and_needs_no_capvector_arm():
+    """Issue 39's powered gate: a study of the preconditions alone plans exactly the steps a full study
+    runs before its gate (same labels, same order) and nothing after it."""
+    full_plan, gate_at = gated_study_plan(load_study("study-smoke", ["study.gate=true"]))
+    gate_only = load_study("study-smoke", GATE_ONLY)
+    assert gate_only.study.gate_only
+    plan = study_plan(gate_only)
+    assert labels(plan) == labels(full_plan)[:gate_at]
+    assert labels(plan)[-1] == "analyse study study-smoke (gate)"
+    assert study_steps(gate_only) == (len(plan), 0)
+
+
+def test_without_the_gate_the_gate_arms_alone_are_refused_naming_the_missing_arm():
+    with pytest.raises(ValueError, match=r"must include \['capvector'\].*gate-only study lists exactly"):
+        load_study("study-smoke", ["study.gate=false", "study.arms=[sft,aux,sft_from_ao,sft_from_ft]"])
+
+
+def test_a_gate_only_report_says_the_gate_passed_and_that_capvector_was_not_part_of_it():
+    from capvector.flows.study.report import _gate
+    from capvector.tasks.steps.study_analysis import StudyDesign, StudyReport
+
+    def report(stage: str) -> StudyReport:
+        return StudyReport.model_construct(gate=None, design=StudyDesign.model_construct(stage=stage))
+
+    assert "declared gate-only" in "\n".join(_gate(report("gate")))
+    assert _gate(report("final")) == []

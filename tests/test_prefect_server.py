@@ -210,8 +210,8 @@ def test_unreachable_server_fails_fast_naming_the_url(tmp_path):
 
 
 def test_runs_are_named_and_tagged_and_step_progress_reaches_the_logs(smoke_home, tmp_path):
-    """The UI shows `pipeline smoke <id>` tagged capvector/run/smoke, task runs spelled in ASCII
-    (θ → theta), and the progress lines printed inside steps run by pool workers in its Logs tab."""
+    """The UI shows `study smoke <id>` (a run is a study) tagged capvector/run/smoke, task runs spelled in
+    ASCII (θ → theta), and the progress lines printed inside steps run by pool workers in its Logs tab."""
     home, _ = smoke_home
     port = _free_port()
     api_url = f"http://127.0.0.1:{port}/api"
@@ -239,7 +239,7 @@ def test_runs_are_named_and_tagged_and_step_progress_reaches_the_logs(smoke_home
         )
         assert run.returncode == 0, run.stderr[-4000:]
         flows = httpx.post(f"{api_url}/flow_runs/filter", json={}, timeout=30).json()
-        (pipeline,) = [f for f in flows if f["name"].startswith("pipeline smoke ")]
+        (pipeline,) = [f for f in flows if f["name"].startswith("study smoke ")]
         assert {"capvector", "run", "smoke"} <= set(pipeline["tags"])
         tasks = httpx.post(
             f"{api_url}/task_runs/filter", json={"flow_runs": {"id": {"any_": [pipeline["id"]]}}}, timeout=30

@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 
 from capvector.flows.study import figures as study_figures
+from capvector.flows.study import plot_style
 from capvector.stats.paired_differences import ENDPOINT
 from capvector.tasks.steps.study_analysis import StudyReport, _per_task_intervals
 
@@ -47,10 +48,10 @@ def test_per_task_intervals_are_over_runs_with_their_n():
 def test_the_curves_say_n_and_fit_their_y_range(report, tmp_path):
     labels = [study_figures._n_label(arm, points) for arm, points in report.curves.items()]
     assert "CapVector (n = 2 draws × 2 seeds × 3 goals)" in labels and "SFT (n = 2 seeds × 3 goals)" in labels
-    assert study_figures.y_range([0.0, 0.0]) == (0.0, 20.0)  # all at 0: still readable
-    assert study_figures.y_range([40.0, 55.0, 62.0]) == (35.0, 67.0)  # fitted, not 0-100
-    assert study_figures.y_range([0.0, 100.0]) == (0.0, 100.0)
-    assert study_figures.y_range([99.0, 100.0]) == (80.0, 100.0)
+    assert plot_style.y_range([0.0, 0.0]) == (0.0, 20.0)  # all at 0: still readable
+    assert plot_style.y_range([40.0, 55.0, 62.0]) == (35.0, 67.0)  # fitted, not 0-100
+    assert plot_style.y_range([0.0, 100.0]) == (0.0, 100.0)
+    assert plot_style.y_range([99.0, 100.0]) == (80.0, 100.0)
     assert report.run_curves["capvector"] and {p.budget for p in report.run_curves["capvector"]} == {0, 8, 16}
     path = study_figures.plot_curves(report, tmp_path / "curves.png")
     assert path.read_bytes()[:8] == PNG

@@ -6,7 +6,6 @@ second run is answered by the cache."""
 from __future__ import annotations
 
 import json
-import math
 import re
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from capvector.stats.paired_differences import ENDPOINT
 from capvector.tasks.runtime.workspace import Workspace
 from capvector.tasks.steps.study_analysis import StudyReport
 from tests.conftest import run_cli
+from tests.golden_report import GOLDEN, golden_differences, same_numbers
 
 
 @pytest.fixture(scope="module")
@@ -246,57 +246,18 @@ def test_the_pixels_study_records_patch_targets_where_its_objective_reads_them()
     assert config.evaluation.episodes_per_task * len(config.splits.downstream) >= 250
 
 
-GOLDEN = Path(__file__).parent / "data" / "study_smoke_report.json"
-
-
-def _same_numbers(actual: object, golden: object, path: str = "") -> list[str]:
-    """Where `actual` differs from `golden`: floats within 1e-4 relative (another CPU's kernels may
-    round differently; a changed step moves them far more), NaN equal to NaN, everything else exact."""
-    if isinstance(golden, dict) and isinstance(actual, dict):
-        keys = sorted(set(golden) | set(actual))
-        missing = [
-            f"{path}/{k}: only in {'golden' if k in golden else 'this run'}"
-            for k in keys
-            if (k in golden) != (k in actual)
-        ]
-        return missing + [
-            d
-            for k in keys
-            if k in golden and k in actual
-            for d in _same_numbers(actual[k], golden[k], f"{path}/{k}")
-        ]
-    if isinstance(golden, list) and isinstance(actual, list):
-        if len(golden) != len(actual):
-            return [f"{path}: {len(actual)} items, golden {len(golden)}"]
-        return [
-            d
-            for i, (a, g) in enumerate(zip(actual, golden, strict=True))
-            for d in _same_numbers(a, g, f"{path}[{i}]")
-        ]
-    if isinstance(golden, float) or isinstance(actual, float):
-        a, g = float(actual), float(golden)
-        if (math.isnan(a) and math.isnan(g)) or math.isclose(a, g, rel_tol=1e-4, abs_tol=1e-7):
-            return []
-    elif actual == golden:
-        return []
-    return [f"{path}: {actual!r}, golden {golden!r}"]
-
-
 def test_the_report_numbers_are_the_golden_ones(study_home):
     """Refactors keep behaviour: every number of study-smoke's report (curves, comparisons,
     preconditions, held-out losses, designs) equals the committed one. The golden file was written at
     this test's commit and is identical to the numbers of d27eac8, 32 commits before it, whose flows had
     hand-counted totals, string-labelled inputs and statistics inside tasks/. Ids are left out: they
     embed code hashes. After an intended change of results, rewrite the file from a run
-    (`StudyReport.model_dump(mode="json", exclude={"final_checkpoints", "selections"})`) and say why."""
+    (tests/golden_report.py `report_numbers(report)`) and say why."""
     home, ids = study_home
     report = StudyReport.model_validate(Workspace(home).api.store.open_json(ids["report"]))
-    numbers = json.loads(
-        json.dumps(report.model_dump(mode="json", exclude={"final_checkpoints", "selections"}))
-    )
     golden = json.loads(GOLDEN.read_text())
     assert any(c["difference"] for c in golden["heldout_loss"])  # the file holds numbers that can move
-    differences = _same_numbers(numbers, golden)
+    differences = golden_differences(report)
     assert not differences, "\n".join(differences[:20])
 
 
@@ -304,8 +265,8 @@ def test_the_golden_comparison_can_fail():
     golden = json.loads(GOLDEN.read_text())
     moved = json.loads(GOLDEN.read_text())
     moved["heldout_loss"][0]["arm_mean"] *= 1.001
-    assert _same_numbers(moved, golden) == [
+    assert same_numbers(moved, golden) == [
         f"/heldout_loss[0]/arm_mean: {moved['heldout_loss'][0]['arm_mean']!r}, "
         f"golden {golden['heldout_loss'][0]['arm_mean']!r}"
     ]
-    assert _same_numbers(golden, golden) == []
+    assert same_numbers(golden, golden) == []

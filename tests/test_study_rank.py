@@ -123,8 +123,19 @@ def test_the_rank_report_has_a_row_per_arm_with_its_parameters_and_a_png_figure(
     assert re.search(r"attn \d", rows["lora_sp_b4"]) and rows["lora_r2"].endswith("| — |")
     assert "Robust to rank" in text
     assert re.search(r"\| lora_sp_b8 − lora_r8 \| [+-]\d+\.\d \[", text)  # a declared comparison
-    assert (out.parent / "rank_forms.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "(rank_forms.png)" in text
+    for figure in ("forms", "capacity", "ranks"):  # vs parameters, vs rank, active ranks per module kind
+        assert (out.parent / f"rank_{figure}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", figure
+        assert f"(rank_{figure}.png)" in text, figure
+
+
+def test_ranks_come_from_each_forms_own_override_and_full_fine_tuning_has_none(rank_home):
+    from capvector.flows.study.forms_figures import capacity
+
+    home, ids = rank_home
+    report = StudyReport.model_validate(Workspace(home).api.store.open_json(ids["report"]))
+    ranks = {arm: capacity(report, arm) for arm in ["sft", *report.design.variants]}
+    expected = {"lora_r2": 2, "lora_r8": 8, "lora_sp_b4": 4, "lora_sp_b8": 8, "adalora_r2": 2}
+    assert ranks == {"sft": None, **expected}
 
 
 def test_a_lora_sp_snapshot_is_tested_as_init_plus_its_own_adapter(rank_home):

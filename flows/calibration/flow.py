@@ -12,8 +12,8 @@ from prefect import flow
 
 from capvector.flows.calibration.config import CalibrateConfig
 from capvector.flows.calibration.plan import calibration_steps, plan_calibration
-from capvector.flows.recipe.flow import step_runner
 from capvector.flows.runtime.run_records import publish_markdown, recorded_run, run_name
+from capvector.flows.runtime.step_pool import step_runner
 from capvector.flows.runtime.step_submission import StepRunner
 from capvector.tasks.runtime.workspace import workspace_for
 

@@ -211,43 +211,43 @@ def run(
     preset: Annotated[str, typer.Option(help="smoke | quick | paper | path to a YAML file")] = "quick",
     overrides: SetOption = None,
     home: HomeOption = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(
+            help="write the Markdown report and its figures here (default: <home>/reports/; "
+            "a remote home's local cache folder)"
+        ),
+    ] = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
     runner_config: Any = None,  # capvector.flows.runtime.task_runners.RunnerConfig, from the runner options
 ) -> None:
-    """Run the whole recipe (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> eval -> report."""
+    """Run the recipe once (cached): demos -> θ_pt -> θ_ft, θ_ao -> γ -> θ_meta -> arms -> tests -> the
+    study report. It is the smallest study (one γ draw, the preset's α, λ and learning rates, nothing
+    chosen, no gate: flows/study/recipe.py); `--json` adds the ids of what it made."""
     if _new_home(home, dry_run):
         _boot_server()
     from capvector.flows.recipe.config import load_config
-    from capvector.flows.recipe.plan import pipeline_plan, run_pipeline
+    from capvector.flows.study.recipe import recipe_study
 
-    config = load_config(preset, overrides)
-    home = resolve_home(home)
-    command = f"run --preset {preset}"
-    plan = lambda steps: run_pipeline(steps, config)  # noqa: E731
-    label = f"pipeline {config.name}"
-    planned = [p.step for p in pipeline_plan(config)]
-    ids = _answer_or_run(
-        command,
-        home,
-        plan,
-        len(planned),
-        label,
-        dry_run,
-        "capvector.flows.recipe.flow:pipeline",
-        config,
-        runner_config,
-        planned,
+    recipe = load_config(preset, overrides)
+    config = recipe_study(recipe)
+    products = _study_command(f"run --preset {preset}", config, home, report, as_json, dry_run, runner_config)
+    if recipe.evaluation.ood_camera is not None and not as_json:
+        typer.echo(_ood_hint(recipe, products))
+
+
+def _ood_hint(recipe: Any, products: dict[str, Any]) -> str:
+    """A study tests through its own camera only: the command that tests the run's final checkpoints
+    through `evaluation.ood_camera`."""
+    camera, data = recipe.evaluation.ood_camera, recipe.data
+    finals = " ".join(c[:12] for c in products.get("checkpoints", {}).values())
+    tasks, horizon = ",".join(recipe.splits.downstream), recipe.evaluation.horizon
+    return (
+        f"evaluation.ood_camera {camera}: not tested by the run; to test its final checkpoints through it: "
+        f"capvector evaluate {finals} --tasks {tasks} --obs-mode {data.obs_mode} "
+        f"--camera {camera} --image-size {data.image_size} --horizon {horizon}"
     )
-    if as_json:
-        print_json(ids)
-        return
-    from capvector.tasks.steps.reporting import load_report, markdown_table, timings
-
-    ws = workspace(home)
-    report = load_report(ws, ids["report"])
-    console.print(markdown_table(report, timings(ws, report)))  # speeds: from the records
-    console.print(f"report: {ids['report']}   (capvector report {ids['report'][:12]})")
 
 
 @runner_options("thread")
@@ -354,7 +354,10 @@ def study(
     home: HomeOption = None,
     report: Annotated[
         Path | None,
-        typer.Option(help="write the Markdown report and its figures here (default: <home>/reports/)"),
+        typer.Option(
+            help="write the Markdown report and its figures here (default: <home>/reports/; "
+            "a remote home's local cache folder)"
+        ),
     ] = None,
     as_json: JsonOption = False,
     dry_run: DryRunOption = False,
@@ -363,38 +366,46 @@ def study(
     """Run an experiment: selections on validation goals, preconditions, all arms, analysis, report."""
     if _new_home(home, dry_run):
         _boot_server()
+    from capvector.flows.study.config import load_study
+
+    config = load_study(preset, overrides)
+    _study_command(f"study --preset {preset}", config, home, report, as_json, dry_run, runner_config)
+
+
+def _study_command(
+    command: str,
+    config: Any,
+    home: str | None,
+    report: Path | None,
+    as_json: bool,
+    dry_run: bool,
+    runner: Any,
+) -> dict[str, Any]:
+    """Plan, answer or run a study (`capvector study`, or `capvector run`'s recipe as one), write its
+    report and figures and print it; `--json`: the ids (the report's, the selections', the products').
+    Returns the products' ids."""
     from functools import partial
 
-    from capvector.flows.study.config import load_study
     from capvector.flows.study.figures import default_report_path, write_study_report
     from capvector.flows.study.plan import gated_study_plan, plan_study
 
-    config = load_study(preset, overrides)
-    command, label = f"study --preset {preset}", f"study {config.name}"
-    plan = partial(plan_study, config)
     steps, gate_at = gated_study_plan(config)
     planned = [p.step for p in steps]
-    result = _answer_or_run(
-        command,
-        home,
-        plan,
-        len(planned),
-        label,
-        dry_run,
-        "capvector.flows.study.flow:study_flow",
-        config,
-        runner_config,
-        planned,
-        gate_at,
-    )
+    flow = "capvector.flows.study.flow:study_flow"
+    plan, label = partial(plan_study, config), f"study {config.name}"
+    args = (command, home, plan, len(planned), label, dry_run, flow, config, runner, planned, gate_at)
+    result = _answer_or_run(*args)
     ws = workspace(home)
     written = write_study_report(ws, result["report"], report or default_report_path(ws, result["report"]))
+    products = result.get("products", {})
     if as_json:
-        print_json({**{k: v for k, v in result.items() if k != "markdown"}, "report_file": str(written)})
-        return
+        rest = {k: v for k, v in result.items() if k not in ("markdown", "products")}
+        print_json({**products, **rest, "report_file": str(written)})
+        return products
     typer.echo(result["markdown"])  # Markdown as written (a console would re-wrap its tables)
     typer.echo(f"study: {result['report']}   (capvector lineage {result['report'][:12]})")
     typer.echo(f"report and figures: {written}")
+    return products
 
 
 @runner_options()

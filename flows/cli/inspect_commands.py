@@ -230,7 +230,12 @@ def report(
         str | None, typer.Argument(help="a study or report artifact (default: the latest study, else report)")
     ] = None,
     out: Annotated[
-        Path | None, typer.Option("-o", "--out", help="Markdown file to write (default: <home>/reports/)")
+        Path | None,
+        typer.Option(
+            "-o",
+            "--out",
+            help="Markdown file to write (default: <home>/reports/; a remote home's local cache folder)",
+        ),
     ] = None,
     section: Annotated[
         list[str] | None,
@@ -268,7 +273,7 @@ def report(
         title, rid = item.rsplit("=", 1)
         sections[title] = rid
     rid = record.id if record is not None else latest_report_id(ws)
-    target = out or Path(ws.home) / "reports" / f"report-{rid[:12]}.md"
+    target = out or ws.local_root / "reports" / f"report-{rid[:12]}.md"  # a remote home: its local cache
     text = notes.read_text() if notes else None
     path = write_report(ws, rid, target, sections, sweep_id, text)
     if as_json:

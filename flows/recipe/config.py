@@ -186,8 +186,9 @@ class EvalSettings(BaseModel):
     )
     ood_camera: str | None = Field(
         None,
-        description="out-of-distribution check (pixels only, pipeline): the final checkpoints are also "
-        "tested through this camera, which no demonstration was recorded with; null: no such check",
+        description="out-of-distribution check (pixels only): a camera no demonstration was recorded "
+        "with; `capvector run` prints the `capvector evaluate` command that tests its final checkpoints "
+        "through it; null: no such check",
     )
     record_video: int = Field(
         0, ge=0, description="test episodes per task recorded as mp4 videos (artifacts of kind `video`)"

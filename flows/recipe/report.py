@@ -1,4 +1,6 @@
-"""`capvector report`: Markdown + PNG figures of a pipeline report (comparison, vector, curves).
+"""`capvector report` of an old `report` artifact (what `capvector run` wrote until the recipe run once
+became a study, capvector.flows.study.recipe): Markdown + PNG figures (comparison, vector, curves). A
+reader of records: nothing writes that kind now; a study's report is capvector.flows.study.figures.
 
 Every number in the document names the catalogue id it came from, so `capvector lineage ID` can
 trace it back to the data.

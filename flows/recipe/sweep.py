@@ -11,9 +11,9 @@ from typing import Any
 from prefect import flow
 
 from capvector.flows.recipe.config import ARMS, PipelineConfig, lambda_label
-from capvector.flows.recipe.flow import step_runner
 from capvector.flows.recipe.plan import submit_arm, submit_vector_stage
 from capvector.flows.runtime.run_records import publish_markdown, recorded_run, run_name
+from capvector.flows.runtime.step_pool import step_runner
 from capvector.flows.runtime.step_submission import StepRunner, record_plan, resolve
 from capvector.tasks.runtime.workspace import workspace_for
 from capvector.tasks.steps.evaluation import evaluate_task

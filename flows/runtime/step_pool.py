@@ -19,6 +19,8 @@ from typing import Self
 
 from prefect.task_runners import ProcessPoolTaskRunner
 
+from capvector.tasks.runtime.prefect_task import bind_worker_to_parent
+
 WAITING_STEPS = 512
 """Steps that may wait for their inputs at once (a large study submits a few hundred)."""
 
@@ -33,3 +35,12 @@ class StepPool(ProcessPoolTaskRunner):
                 max_workers=WAITING_STEPS, thread_name_prefix="step-inputs"
             )
         return self
+
+
+def step_runner(workers: int = 2) -> StepPool:
+    """The flows' default runner: a pool of step processes, because steps seed torch's process-global
+    RNG and must not share it, and two training steps in two processes use both cores without
+    contending for the GIL. Each worker is bound to the process that started it
+    (capvector.tasks.runtime.prefect_task.bind_worker_to_parent): a killed CLI takes its workers, and
+    their embedded API servers, along."""
+    return StepPool(max_workers=workers, initializer=bind_worker_to_parent)

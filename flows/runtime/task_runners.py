@@ -1,7 +1,7 @@
 """Where a flow's steps run: the task runner a command builds from `--runner` and its options.
 
 - `process` (run, study, sweep's default): a pool of `--workers` step processes bound to the CLI
-  (capvector.flows.recipe.flow.step_runner): steps seed torch's process-global RNG and must not share a
+  (capvector.flows.runtime.step_pool.step_runner): steps seed torch's process-global RNG and must not share a
   process.
 - `thread` (evaluate, reevaluate's default): Prefect's thread pool, as those flows always ran.
 - `dask`: with `--address tcp://host:port`, the steps go to an existing Dask scheduler's workers;
@@ -116,7 +116,7 @@ def _option_error(error: Any) -> str:
 def build_runner(config: RunnerConfig) -> Any:
     """The Prefect task runner `config` describes (not started: the flow run starts it)."""
     if config.kind == "process":
-        from capvector.flows.recipe.flow import step_runner
+        from capvector.flows.runtime.step_pool import step_runner
 
         return step_runner(config.workers)
     if config.kind == "thread":

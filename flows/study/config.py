@@ -20,8 +20,20 @@ from capvector.flows.study.variants import Variant, check_variants, variant_conf
 from capvector.tasks.steps.training import TrainStepConfig
 
 StudyArm = Literal[
-    "sft", "aux", "meta_sft", "meta_sft_dose", "capvector", "null_capvector", "sft_from_ao", "sft_from_ft"
+    "sft",
+    "aux",
+    "meta_sft",
+    "meta_sft_dose",
+    "capvector",
+    "null_capvector",
+    "sft_from_ao",
+    "sft_from_ft",
+    "capvector_lora",
+    "capvector_lora_sp",
+    "capvector_adalora",
 ]
+"""The adapter forms of CapVector (from θ_meta, orthogonal loss, an adapter) are arms a study may list;
+their SFT forms are `study.variants` (flows/study/variants.py) and each is compared against its own."""
 SHARED_ARMS = ("sft", "aux")
 """Arms that start from θ_pt: one run per training seed, shared by every γ draw."""
 GATE_ARMS: tuple[StudyArm, ...] = ("sft", "aux", "sft_from_ao", "sft_from_ft")
@@ -49,7 +61,8 @@ class StudySettings(LambdaGrid):
             the mean of K points at the signal with cos √(Kρ / (Kρ + 1 − ρ)).
         tuning_seeds: seeds of the runs values are chosen from (never a compared run's seed or draw);
             a cell's score is its mean validation success over them, so with 2 or more one lucky
-            tuning run cannot pick a value.
+            tuning run cannot pick a value. Empty: nothing is chosen — every grid has one value, used as
+            given (the recipe run once, `capvector run`, is such a study: flows/study/recipe.py).
         tuning_vector_draws: extraction draws whose mean γ̄_tune is the vector every α × λ tuning run
             merges and regularizes with (no compared arm uses them); empty: each tuning seed's own γ
             from the extraction grid's runs. One γ is mostly seed noise: tuning λ on it tunes on noise.
@@ -76,7 +89,10 @@ class StudySettings(LambdaGrid):
         budgets: downstream steps at which every run is kept and tested besides the final one. The
             primary endpoint is the mean success over these budgets and the final one (the area under
             the success-vs-steps curve); values are chosen on validation goals at that same endpoint.
-        arms: the compared arms (sft and capvector are required).
+            Empty: the final budget alone.
+        arms: the compared arms (sft and capvector are required, except in a gate-only study: with
+            `gate: true` and exactly the gate's arms, the study ends at its gate whatever it shows, and
+            its report is the gate's).
         n_boot: bootstrap resamples per interval.
         gate: run the arms that test the preconditions (SFT, auxiliary SFT, SFT from θ_ao and from θ_ft)
             first and the CapVector arms only when (c) and (c′) hold with intervals above 0; otherwise the
@@ -96,7 +112,7 @@ class StudySettings(LambdaGrid):
     compare: list[tuple[str, str]] = Field(default_factory=list)
     draws: list[NonNegativeInt] = Field(default_factory=lambda: [0, 1], min_length=1)
     draws_per_replicate: int = Field(1, ge=1)
-    tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001], min_length=1)
+    tuning_seeds: list[int] = Field(default_factory=lambda: [1000, 1001])
     tuning_vector_draws: list[NonNegativeInt] = Field(default_factory=list)
     extraction_lrs: list[float] = Field(default_factory=list)
     extraction_aux_weights: list[float] = Field(default_factory=list)
@@ -106,7 +122,7 @@ class StudySettings(LambdaGrid):
     alphas: list[float] = Field(default_factory=lambda: [0.5, 1.0, 1.5, 2.0], min_length=1)
     dose_alpha: float | None = Field(None, gt=0)
     aux_weights: list[float] = Field(default_factory=list)
-    budgets: list[int] = Field(min_length=1)
+    budgets: list[int]
     arms: list[StudyArm] = Field(default_factory=lambda: list(ALL_ARMS))
     n_boot: int = Field(2000, ge=100)
     gate: bool = True
@@ -116,6 +132,17 @@ class StudySettings(LambdaGrid):
         """Whether an arm depends on γ (anything but `sft`, `aux` and the variants, all from θ_pt): only
         then do the extraction stage, the γ draws and the gate run."""
         return any(arm not in SHARED_ARMS for arm in self.arms)
+
+    @property
+    def chooses(self) -> bool:
+        """Whether values are chosen on validation goals (tuning runs, `select` steps); without tuning
+        seeds every grid holds the one value used."""
+        return bool(self.tuning_seeds)
+
+    @property
+    def gate_only(self) -> bool:
+        """A study of the preconditions alone: it ends at its gate, passed or not."""
+        return self.gate and set(self.arms) == set(GATE_ARMS)
 
     def _grids_and_arms(self) -> None:
         """Every grid has distinct (and, for lrs and weights, positive) values; `sft` is an arm."""
@@ -143,16 +170,34 @@ class StudySettings(LambdaGrid):
         if clash:
             raise ValueError(f"study.variants {clash} are named like a study arm: give them names of theirs")
 
+    def _given_values(self) -> None:
+        """Without tuning seeds nothing is chosen: each grid holds at most one value, the one used."""
+        if self.chooses:
+            return
+        grids = ("extraction_lrs", "extraction_aux_weights", "aux_weights", "alphas", "sft_lrs")
+        wide = [f"study.{name}" for name in grids if len(getattr(self, name)) > 1]
+        wide += [f"study.variants.{n}.lrs" for n, v in self.variants.items() if len(v.lrs) > 1]
+        if len(self.lambdas_relative) + len(self.lambdas_absolute) > 1:
+            wide.append("study.lambdas_relative + study.lambdas_absolute")
+        if wide:
+            raise ValueError(
+                f"study.tuning_seeds is empty (nothing is chosen) but {', '.join(wide)} hold several values: "
+                "give one value each, or tuning seeds to choose among them"
+            )
+        if self.tuning_vector_draws:
+            raise ValueError("study.tuning_vector_draws need study.tuning_seeds: they are tuning's vector")
+
     @model_validator(mode="after")
     def _design(self) -> StudySettings:
         self._grids_and_arms()
+        self._given_values()
         if not self.needs_gamma:
             if self.gate:
                 raise ValueError(
                     f"study.gate is true but study.arms {self.arms} need no γ: the gate tests preconditions "
                     "of γ's arms; set study.gate: false"
                 )
-            if not self.variants:
+            if not self.variants and self.chooses:
                 raise ValueError("study.arms need no γ and study.variants is empty: nothing to compare")
             if "aux" in self.arms and not self.aux_weights:
                 raise ValueError("study.aux_weights is empty: the aux arm's weight is chosen from it")
@@ -176,11 +221,14 @@ class StudySettings(LambdaGrid):
         shared = sorted(set(self.tuning_vector_draws) & set(self.draws))
         if shared:
             raise ValueError(f"study.tuning_vector_draws {shared} are also compared draws")
-        missing = {"sft", "capvector"} - set(self.arms)
+        # a gate-only study has no CapVector arm, nor need a recipe run once (nothing chosen) have one
+        given = self.gate_only or not self.chooses
+        missing = {"sft", "capvector"} - set(self.arms) - ({"capvector"} if given else set())
         if missing:
             raise ValueError(
                 f"study.arms must include {sorted(missing)}: every comparison is against them (a study of "
-                "fine-tuning forms lists sft and study.variants only)"
+                "fine-tuning forms lists sft and study.variants only; a gate-only study lists exactly the "
+                f"gate's arms {list(GATE_ARMS)} with study.gate: true)"
             )
         if self.gate:
             lacking = sorted(set(GATE_ARMS) - set(self.arms))

@@ -8,6 +8,7 @@ endpoint with each comparison's MDD marked; the endpoint per task and arm with a
 runs and n; and γ (precondition (e)'s values): its norm against the seed-noise reference and the
 signal's norm, and the cosines between draws, with θ_ft − θ_pt and between replicates. A fifth reads
 the final checkpoints' records: each arm's training action-loss curves (median and range over runs).
+A study of fine-tuning forms adds its own three (capvector.flows.study.forms_figures).
 """
 
 from __future__ import annotations
@@ -17,18 +18,13 @@ import statistics
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.ticker import NullFormatter  # noqa: E402
-
-from capvector.flows.study.forms_report import form_rows  # noqa: E402
-from capvector.flows.study.report import NAMES, load_study_report, study_markdown  # noqa: E402
-from capvector.stats.paired_differences import ENDPOINT  # noqa: E402
-from capvector.tasks.runtime.workspace import Workspace  # noqa: E402
-from capvector.tasks.steps.evaluation import videos_of  # noqa: E402
-from capvector.tasks.steps.study_analysis import StudyReport  # noqa: E402
+from capvector.flows.study.forms_figures import plot_active_ranks, plot_capacity, plot_forms
+from capvector.flows.study.plot_style import plt, y_range
+from capvector.flows.study.report import NAMES, load_study_report, study_markdown
+from capvector.stats.paired_differences import ENDPOINT
+from capvector.tasks.runtime.workspace import Workspace
+from capvector.tasks.steps.evaluation import videos_of
+from capvector.tasks.steps.study_analysis import StudyReport
 
 COLOURS = {
     "sft": "#4c72b0",
@@ -40,16 +36,6 @@ COLOURS = {
     "sft_from_ao": "#55a868",
     "sft_from_ft": "#8c8c8c",
 }
-
-
-def y_range(shown: list[float]) -> tuple[float, float]:
-    """The curves' y range: what is drawn (means, intervals, run points) with 5 points of margin, within
-    0-100, and at least 20 points tall (centred on what is drawn, kept inside 0-100)."""
-    low, high = max(0.0, min(shown, default=0) - 5), min(100.0, max(shown, default=100) + 5)
-    if high - low < 20:
-        middle = min(max((low + high) / 2, 10.0), 90.0)
-        low, high = middle - 10, middle + 10
-    return low, high
 
 
 def _n_label(arm: str, points: list[Any]) -> str:
@@ -338,53 +324,6 @@ def plot_losses(workspace: Workspace, report: StudyReport, path: Path) -> Path |
     return path
 
 
-FORM_COLOURS = {"full": "#4c72b0", "LoRA": "#dd8452", "LoRA-SP": "#55a868", "AdaLoRA": "#c44e52"}
-
-
-def plot_forms(workspace: Workspace, report: StudyReport, path: Path) -> Path | None:
-    """A study of fine-tuning forms: each arm's endpoint success (95 % interval as a bar) against its
-    trainable parameters (log scale), coloured by form, each point named by its arm; a form's variants
-    joined by a line in order of size, so its dependence on capacity reads as the line's slope."""
-    rows = [r for r in form_rows(workspace, report) if r.endpoint is not None and r.trainable_parameters]
-    if not report.design.variants or not rows:
-        return None
-    fig, ax = plt.subplots(figsize=(7.2, 4.4))
-    shown: list[float] = []
-    for form in dict.fromkeys(r.form for r in rows):
-        mine = sorted((r for r in rows if r.form == form), key=lambda r: r.trainable_parameters)
-        xs, ys = [r.trainable_parameters for r in mine], [r.endpoint.mean for r in mine]
-        low = [r.endpoint.mean - r.endpoint.ci_low for r in mine]
-        high = [r.endpoint.ci_high - r.endpoint.mean for r in mine]
-        colour = FORM_COLOURS.get(form)
-        ax.errorbar(xs, ys, yerr=[low, high], fmt="o-", color=colour, capsize=3, lw=1.2, ms=5, label=form)
-        for r in mine:
-            ax.annotate(
-                r.arm,
-                (r.trainable_parameters, r.endpoint.mean),
-                textcoords="offset points",
-                xytext=(4, 4),
-                fontsize=7,
-                color=colour,
-            )
-        shown += [r.endpoint.ci_low for r in mine] + [r.endpoint.ci_high for r in mine]
-    ax.set_xscale("log")
-    ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels of a short log axis overlap
-    low, high = y_range(shown)
-    ax.set_ylim(low - 2, high)  # a point at 0 % stays visible above the axis
-    ax.set_xlabel("trainable parameters (log scale)")
-    ax.set_ylabel("test success at the endpoint (%)")
-    n = rows[0].endpoint
-    ax.set_title(
-        f"Endpoint success vs trainable parameters: mean and 95 % CI ({n.n_seeds} seeds × {n.n_goals} goals)",
-        fontsize=9,
-    )
-    ax.legend(fontsize=8, frameon=False)
-    ax.grid(alpha=0.3, which="both")
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
-
-
 def latest_study_id(workspace: Workspace) -> str | None:
     _, rows = workspace.api.query_rows(
         "SELECT id FROM artifacts WHERE kind = 'study' ORDER BY created_at DESC LIMIT 1"
@@ -393,9 +332,11 @@ def latest_study_id(workspace: Workspace) -> str | None:
 
 
 def default_report_path(workspace: Workspace, study_id: str) -> Path:
-    """Reports go into the home (`reports/`), never over a tracked file of the directory run from."""
+    """Reports go into the home (`reports/`), never over a tracked file of the directory run from; a
+    remote home's into its local cache folder, beside its run logs (`Path("s3://b/home")` was a local
+    folder `s3:/b/home` in the directory run from)."""
     name = workspace.api.get(study_id).name.removeprefix("analyse study ").replace(" ", "-")
-    return Path(workspace.home) / "reports" / f"{name}-{study_id[:12]}.md"
+    return workspace.local_root / "reports" / f"{name}-{study_id[:12]}.md"
 
 
 def write_study_report(workspace: Workspace, study_id: str, out: Path) -> Path:
@@ -412,6 +353,10 @@ def write_study_report(workspace: Workspace, study_id: str, out: Path) -> Path:
         "Training action loss per arm": plot_losses(workspace, report, out.parent / f"{out.stem}_losses.png"),
         "Endpoint vs trainable parameters": plot_forms(
             workspace, report, out.parent / f"{out.stem}_forms.png"
+        ),
+        "Endpoint vs rank": plot_capacity(workspace, report, out.parent / f"{out.stem}_capacity.png"),
+        "Active ranks per module kind": plot_active_ranks(
+            workspace, report, out.parent / f"{out.stem}_ranks.png"
         ),
     }
     figures = {title: p.name for title, p in drawn.items() if p is not None}

@@ -9,8 +9,8 @@ from typing import Any
 
 from prefect import flow
 
-from capvector.flows.recipe.flow import step_runner
 from capvector.flows.runtime.run_records import publish_markdown, recorded_run, run_name
+from capvector.flows.runtime.step_pool import step_runner
 from capvector.flows.runtime.step_submission import StepRunner
 from capvector.flows.study.config import StudyConfig
 from capvector.flows.study.plan import plan_study, study_steps

@@ -40,7 +40,7 @@ class FormRow(BaseModel):
     """Module kind -> mean active rank over its adapted layers and the arm's runs (rank-adaptive forms)."""
 
 
-def _summaries(workspace: Workspace, ids: list[str]) -> list[dict[str, Any]]:
+def run_summaries(workspace: Workspace, ids: list[str]) -> list[dict[str, Any]]:
     return [workspace.api.get(i).config or {} for i in ids]
 
 
@@ -70,7 +70,7 @@ def form_rows(workspace: Workspace, report: StudyReport) -> list[FormRow]:
     variants = report.design.variants
     rows = []
     for arm in ["sft", *variants]:
-        records = _summaries(workspace, report.final_checkpoints.get(arm, []))
+        records = run_summaries(workspace, report.final_checkpoints.get(arm, []))
         speeds = _median([r["summary"].get("steps_per_s") for r in records])
         declared = variants.get(arm, {"arm": "sft", "set": {}})
         setting = ", ".join(f"{k}={v}" for k, v in declared["set"].items()) or "all weights"

@@ -58,6 +58,16 @@ SHARED = -1
 """The draw of an arm shared by every γ draw (capvector.stats.paired_differences.SHARED_DRAW)."""
 
 
+class Given(dict):
+    """A grid's one value where nothing is chosen (`study.tuning_seeds` empty): no `select` step ran,
+    so the runs that use it have no selection input."""
+
+
+def _selected(selection: Any) -> Any:
+    """A selection as a step input: None for a given value (there is no step to point at)."""
+    return None if isinstance(selection, Given) else selection
+
+
 def _dump(model: Any) -> dict[str, Any]:
     return model.model_dump(mode="json")
 
@@ -117,8 +127,13 @@ class _Study:
         """What CapVector's arms are compared over: γ draws, or replicates (means of K draws)."""
         self.gate_more = 0
         """The steps that follow a passed gate (the runner's total grows by them then)."""
+        self.base: dict[str, Any] = {}
+        self.units: dict[int, dict[str, Any]] = {}
+        self.runs: dict[tuple[str, int, int], Any] = {}
+        """What the study made, kept for `products`: demos and θ_pt, each unit's stage, the compared runs."""
 
     def submit(self, task: Any, step: str, inputs: dict[str, Any], config: Any) -> Any:
+        inputs = {k: v for k, v in inputs.items() if not isinstance(v, Given)}
         return self.steps.submit(task, step, inputs, config if isinstance(config, dict) else _dump(config))
 
     def record(self, key: InputKey, value: Any) -> None:
@@ -129,9 +144,9 @@ class _Study:
         """Budget -> the checkpoint a run kept after that many steps (waits for the run)."""
         return snapshots_of(self.workspace, resolve(run))
 
-    def chosen(self, selection: str) -> dict[str, Any]:
-        """The values a selection chose."""
-        return chosen(self.workspace, selection)
+    def chosen(self, selection: str | Given) -> dict[str, Any]:
+        """The values a selection chose (or the given ones)."""
+        return dict(selection) if isinstance(selection, Given) else chosen(self.workspace, selection)
 
     def gate_passed(self, report: str) -> bool:
         return gate_passed(self.workspace, report)
@@ -145,7 +160,7 @@ class _Study:
     ) -> Any:
         """A compared run of an arm that depends on draw (or replicate) d (its name carries it: unique)."""
         label = f"downstream {arm} {self.unit} {d} seed {seed}"
-        return submit_arm(self.steps, stage, arm, seed, step, label=label, selection=selection)
+        return submit_arm(self.steps, stage, arm, seed, step, label=label, selection=_selected(selection))
 
     def validate_curve(self, run: Any, what: str) -> list[Any]:
         """A downstream run's validation evaluations at every curve budget (its endpoint's parts)."""
@@ -165,10 +180,13 @@ class _Study:
         cells: list[tuple[dict[str, Any], list[Any]]],
         context: dict[str, Any],
         tiebreaks: list[Any] = (),
-    ) -> str:
+    ) -> str | Given:
         """A `select` step over (values, validation evaluations) cells — a cell's score is the mean over
         its evaluations — ties broken by the `tiebreaks` (held-out loss measurements, one per cell)
-        when given; its id (waits for it)."""
+        when given; its id (waits for it). Where nothing is chosen, the one cell's values, given."""
+        if not self.cfg.study.chooses:
+            ((values, _),) = cells
+            return Given(values)
         inputs = {f"cell {i} @ {j}": e for i, (_, evals) in enumerate(cells) for j, e in enumerate(evals)}
         inputs |= {f"loss {i}": m for i, m in enumerate(tiebreaks)}
         candidates = [
@@ -204,6 +222,32 @@ class _Study:
             loss = self.submit(held_out_loss_task, f"held-out loss D_down {what}", held_out, {})
             self.record(DownstreamLoss(arm=arm, draw=d, seed=seed), loss)
 
+    def products(self) -> dict[str, Any]:
+        """The ids of what the study made, by name: `datasets`, `pretrained`; per unit (draw or replicate)
+        its θ_ft, θ_ao, γ and θ_meta (`standard`, `auxiliary`, `vector`, `meta`: at the top for a study of
+        one unit, under `units` otherwise); every compared run's final checkpoint and its test
+        evaluation (`checkpoints`, `evaluations`: `arm/seedS`, or `arm/<unit>D/seedS` with several units)."""
+        out: dict[str, Any] = {
+            "datasets": {k: resolve(v) for k, v in self.base.get("data", {}).items()},
+            "pretrained": resolve(self.base.get("pretrained")),
+        }
+        names = ("standard", "auxiliary", "vector", "meta")
+        units = {d: {k: resolve(u[k]) for k in names if k in u} for d, u in self.units.items()}
+        if len(units) == 1:
+            out |= next(iter(units.values()))
+        elif units:
+            out["units"] = {str(d): u for d, u in units.items()}
+        final = self.cfg.downstream.steps
+        out["checkpoints"], out["evaluations"] = {}, {}
+        for (arm, d, seed), run in self.runs.items():
+            unit = "" if d == SHARED or len(units) == 1 else f"{self.unit}{d}/"
+            label = f"{arm}/{unit}seed{seed}"
+            out["checkpoints"][label] = resolve(run)
+            test = self.analysis_inputs.get(TestEvaluation(arm=arm, draw=d, seed=seed, budget=final).key)
+            if test is not None:
+                out["evaluations"][label] = resolve(test)
+        return out
+
     def analyse(self, stage: str, design: dict[str, Any]) -> str:
         inputs = {k: resolve(v) for k, v in self.analysis_inputs.items()}
         name = f"analyse study {self.cfg.name}" + (" (gate)" if stage == "gate" else "")
@@ -222,7 +266,9 @@ class _PlannedStudy(_Study):
         train = run.config["train"]
         return {b: run for b in sorted({*train["snapshot_steps"], train["steps"]})}
 
-    def chosen(self, selection: PlannedStep) -> dict[str, Any]:
+    def chosen(self, selection: PlannedStep | Given) -> dict[str, Any]:
+        if isinstance(selection, Given):
+            return dict(selection)
         return selection.config["candidates"][0]["values"]
 
     def gate_passed(self, report: PlannedStep) -> bool:
@@ -407,7 +453,7 @@ def _shared_run(
     variant = cfg.study.variants.get(name)
     step = cfg.variant_downstream(name, seed, lr) if variant else cfg.sft_downstream(seed, lr)
     arm = variant.arm if variant else name
-    return submit_arm(study.steps, base, arm, seed, step, label=label, selection=selection)
+    return submit_arm(study.steps, base, arm, seed, step, label=label, selection=_selected(selection))
 
 
 def _shared_runs(
@@ -478,7 +524,9 @@ def _aux_runs(study: _Study, base: dict[str, Any], aux_grid: list, runs: dict, c
     chosen_values["aux_weight"] = study.chosen(aux_selection)["aux_weight"]
     for seed in cfg.seeds:
         step = cfg.study_downstream("aux", seed, aux_weight=chosen_values["aux_weight"])
-        runs["aux", SHARED, seed] = submit_arm(study.steps, base, "aux", seed, step, selection=aux_selection)
+        runs["aux", SHARED, seed] = submit_arm(
+            study.steps, base, "aux", seed, step, selection=_selected(aux_selection)
+        )
 
 
 def _gate_arms(study: _Study, units: dict[int, dict[str, Any]], runs: dict) -> None:
@@ -566,7 +614,15 @@ def _merges(study: _Study, d: int, stage: dict, base: dict[str, Any], selection:
     study.record(ExtractionValidation(which="meta", draw=d), meta_validation)
 
 
-AFTER_GATE_ARMS = ("meta_sft", "meta_sft_dose", "capvector", "null_capvector")
+AFTER_GATE_ARMS = (
+    "meta_sft",
+    "meta_sft_dose",
+    "capvector",
+    "null_capvector",
+    "capvector_lora",
+    "capvector_lora_sp",
+    "capvector_adalora",
+)
 START_NAMES = {"meta": "θ_meta", "null_meta": "θ_null", "dose_meta": "θ_meta dose"}
 
 
@@ -603,8 +659,8 @@ def _shared_study(study: _Study, base: dict[str, Any], grids: dict, aux_grid: li
 def _run_study(study: _Study) -> dict[str, Any]:
     """The study in order: the gate's arms, the gate, then CapVector's α × λ and arms (see the module)."""
     cfg, s = study.cfg, study.cfg.study
-    base = _foundations(study)
-    runs: dict[tuple[str, int, int], Any] = {}  # (arm, draw, seed) -> checkpoint
+    base = study.base = _foundations(study)
+    runs = study.runs  # (arm, draw, seed) -> checkpoint
     grids = _lr_grids(study, base)
     for seed in cfg.seeds if "sft" not in grids else ():  # without a grid, at once
         step = cfg.study_downstream("sft", seed)
@@ -617,7 +673,7 @@ def _run_study(study: _Study) -> dict[str, Any]:
 
     extraction = _extraction(study, base["data"], base["pretrained"])
     draws = {d: _draw(study, d, base, extraction) for d in s.draws}
-    units = _units(study, draws)
+    units = study.units = _units(study, draws)
     chosen_values = {"extraction_lr": extraction["lr"], "extraction_aux_weight": extraction["aux_weight"]}
     if aux_grid:
         _aux_runs(study, base, aux_grid, runs, chosen_values)
@@ -627,6 +683,9 @@ def _run_study(study: _Study) -> dict[str, Any]:
     _held_out_losses(study, draws, base["data"]["heldout"])
     if s.gate:
         gate_report = study.analyse("gate", _design(cfg, chosen_values))
+        if s.gate_only:
+            emit(f"[study {cfg.name}] gate-only study: it ends at its gate, and its report is the gate's")
+            return {"report": gate_report, "selections": _selections(study)}
         if not study.gate_passed(gate_report):
             emit(f"[study {cfg.name}] gate: preconditions (c), (c′) not shown; CapVector's arms are not run")
             return {"report": gate_report, "selections": _selections(study)}
@@ -667,6 +726,7 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
         "gate": s.gate,
         "draws_per_replicate": s.draws_per_replicate,
         "chosen": chosen_values,
+        **({} if s.chooses else {"given": True}),  # absent where values are chosen: those plans as they were
         "grids": {
             "extraction_lr": list(s.extraction_lrs),
             "extraction_aux_weight": list(s.extraction_aux_weights),
@@ -687,4 +747,5 @@ def plan_study(cfg: StudyConfig, steps: StepRunner) -> dict[str, Any]:
     study = _Study(cfg, steps, workspace)
     study.gate_more = study_steps(cfg)[1]
     ids = _run_study(study)
-    return {**ids, "markdown": study_markdown(workspace, load_study_report(workspace, ids["report"]))}
+    markdown = study_markdown(workspace, load_study_report(workspace, ids["report"]))
+    return {**ids, "products": study.products(), "markdown": markdown}

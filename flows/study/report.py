@@ -212,7 +212,16 @@ def _design(report: StudyReport) -> list[str]:
 
 
 def _gate(report: StudyReport) -> list[str]:
-    """Why CapVector's arms are missing, when the gate stopped the study before them."""
+    """Why CapVector's arms are missing: the gate stopped the study before them, or the study was
+    declared gate-only (its stage is the gate's and its gate passed)."""
+    if report.gate is None and report.design.stage == "gate":
+        return [
+            "",
+            "## Gate: preconditions (c) and (c′) shown",
+            "",
+            "This study was declared gate-only: it tests the preconditions and ends at its gate. "
+            "CapVector's arms (θ_meta, the orthogonal loss, the null vector) are not part of it.",
+        ]
     if report.gate is None:
         return []
     return [
@@ -331,10 +340,14 @@ def _chosen(chosen: dict[str, float]) -> str:
 
 
 def _choices(report: StudyReport) -> list[str]:
-    """The settings chosen on validation goals and the `selection` artifacts that record each choice."""
+    """The settings chosen on validation goals and the `selection` artifacts that record each choice (or,
+    where nothing was chosen, the settings the preset gave)."""
+    title = "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)"
+    if report.design.given:
+        title = "## Settings (given by the preset: nothing was chosen, no tuning run)"
     lines = [
         "",
-        "## Choices (validation goals, tuning seed, at the primary endpoint; each a `selection` artifact)",
+        title,
         "",
         _chosen(report.design.chosen),
         "",

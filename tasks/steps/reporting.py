@@ -1,4 +1,7 @@
-"""Step: the comparison table of the pipeline's arms (mean ± std over training seeds, per task)."""
+"""Old `report` artifacts, read as records: the comparison table of a pipeline run's arms (mean ± std
+over training seeds, per task) that `capvector run` wrote until the recipe run once became a study
+(capvector.flows.study.recipe). Nothing writes them now; `capvector report ID` renders them
+(capvector.flows.recipe.report)."""
 
 from __future__ import annotations
 
@@ -7,9 +10,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from capvector.artifacts.scores import read_scores
-from capvector.tasks.runtime.step_kinds import StepCall, StepKind, step_task
-from capvector.tasks.runtime.workspace import Workspace, provenance
+from capvector.tasks.runtime.workspace import Workspace
 
 
 class MeanStd(BaseModel):
@@ -53,7 +54,7 @@ class ArmRow(BaseModel):
 
 
 class Report(BaseModel):
-    """Content of a `kind="report"` artifact: written and read through this model only."""
+    """Content of a `kind="report"` artifact: read through this model only."""
 
     fingerprint: str | None
     arms: dict[str, ArmRow]
@@ -67,49 +68,6 @@ def load_report(workspace: Workspace, report_id: str) -> Report:
 def trained_with(checkpoint_config: dict[str, Any], key: str) -> Any:
     """A setting of the training run that made a checkpoint (`lr`, `steps`, ...); None if unrecorded."""
     return checkpoint_config.get("train_step", {}).get("train", {}).get(key)
-
-
-def comparison(workspace: Workspace, evaluations: dict[str, str]) -> Report:
-    """`evaluations`: label "<arm>/seed<k>" -> evaluation id (full). Refuses mixed protocols.
-
-    This is the report's content, so its id: only what the evaluated checkpoints and their scores
-    determine. Scores come from the catalogue (capvector.artifacts.scores), never from a sidecar. Measured
-    speeds and wall times differ from one run, machine or load to the next, so they stay in the checkpoints'
-    records (sidecars) and are read from there when a report is rendered (`timings`, `markdown_table(report,
-    timings)`).
-    """
-    scores = {s.evaluation_id: s for s in read_scores(workspace.api, evaluations=evaluations.values())}
-    per_arm: dict[str, list[ReportRun]] = {}
-    for label, eval_id in sorted(evaluations.items()):
-        score = scores[eval_id]
-        checkpoint = workspace.api.get(score.checkpoint_id)
-        summary = checkpoint.config.get("summary", {})
-        per_arm.setdefault(label.split("/")[0], []).append(
-            ReportRun(
-                label=label,
-                evaluation_id=eval_id,
-                checkpoint_id=checkpoint.id,
-                success_rates=score.success_rates,
-                mean_success=score.mean_success,
-                trainable_parameters=summary.get("trainable_parameters"),
-                lr=trained_with(checkpoint.config, "lr"),
-                active_ranks=summary.get("active_ranks"),
-            )
-        )
-    fingerprints = {s.fingerprint for s in scores.values()}
-    if len(fingerprints) > 1:
-        raise ValueError(f"evaluations use {len(fingerprints)} different protocols; refusing to compare them")
-    arms = {}
-    for arm, runs in per_arm.items():
-        tasks = sorted(runs[0].success_rates)
-        arms[arm] = ArmRow(
-            overall=MeanStd.of([r.mean_success for r in runs]),
-            per_task={t: MeanStd.of([r.success_rates[t] for r in runs]) for t in tasks},
-            trainable_parameters=runs[0].trainable_parameters,
-            lr=runs[0].lr,
-            runs=runs,
-        )
-    return Report(fingerprint=fingerprints.pop() if fingerprints else None, arms=arms)
 
 
 def timings(workspace: Workspace, report: Report) -> dict[str, dict[str, float | None]]:
@@ -150,22 +108,3 @@ def markdown_table(report: Report, timings: dict[str, dict[str, float | None]] |
         cells += [f"{row.trainable_parameters or '-'}", f"{row.lr:g}" if row.lr else "-", str(row.overall.n)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + f"\n\nProtocol fingerprint: `{report.fingerprint}`\n"
-
-
-def _report(call: StepCall) -> str:
-    report = comparison(call.workspace, call.inputs)
-    report.markdown = markdown_table(report)
-    record = call.workspace.api.register_json(
-        report,
-        kind="report",
-        name=call.step,
-        config={**call.config, "cache_key": call.key},
-        parents=[(eval_id, "evaluation") for eval_id in dict.fromkeys(call.inputs.values())],
-        **provenance(),
-    )
-    return record.id
-
-
-REPORT = StepKind("report", None, (), _report)
-run_report = REPORT.run
-report_task = step_task(REPORT)

@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_serializer
 
 from capvector.artifacts.scores import read_episodes, read_scores
 from capvector.core.vectors.safetensors_io import Checkpoint
@@ -66,6 +66,9 @@ COMPARED = (  # (arm, baseline): the report's headline, then the controls
     ("meta_sft", "sft"),
     ("meta_sft_dose", "sft"),
     ("meta_sft_dose", "meta_sft"),
+    ("capvector_lora", "sft_lora"),  # the adapter forms, each against its SFT form (a study variant)
+    ("capvector_lora_sp", "sft_lora_sp"),
+    ("capvector_adalora", "sft_adalora"),
 )
 
 
@@ -106,6 +109,16 @@ class StudyDesign(BaseModel):
     stage: Literal["gate", "final"] = "final"
     chosen: dict[str, float]
     grids: dict[str, list[float]]
+    given: bool = False
+    """True: nothing was chosen (no tuning seeds); `chosen` holds the values the preset gave."""
+
+    @model_serializer(mode="wrap")
+    def _given_only_when_true(self, handler: Any) -> dict[str, Any]:
+        """`given` is written only when true: a study that chose its values is stored as before."""
+        data = handler(self)
+        if not data.get("given"):
+            data.pop("given", None)
+        return data
 
     def at_edge(self) -> list[str]:
         """Choices at an end of a grid of 3 or more values (a wider grid might have chosen beyond)."""
@@ -259,14 +272,16 @@ def _preconditions(
         f"θ_{'ft' if r['run'] == 'standard' else 'ao'}^{r['draw']} {-100 * r['relative_drop']:+.1f} %"
         for r in convergence
     )
+    how = "given by the preset" if design.given else "chosen on validation"
     result = [
         Precondition(
             key="a",
-            claim="the extraction runs converge (lr chosen on D_ext validation; held-out action loss flat "
+            claim=f"the extraction runs converge (lr {how.replace('validation', 'D_ext validation')}; "
+            "held-out action loss flat "
             f"over the second half: moved < {100 * design.flat_tolerance:.0f} %); reported, not required: "
             "longer extraction made γ noisier, (e) measures what CapVector needs",
             holds=len(flat) == len(convergence) if convergence else None,
-            detail=f"lr {design.chosen['extraction_lr']:g} chosen on validation; held-out loss change over "
+            detail=f"lr {design.chosen['extraction_lr']:g} {how}; held-out loss change over "
             f"the second half: {drops}",
         )
     ]
