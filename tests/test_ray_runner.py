@@ -39,8 +39,12 @@ pytest.importorskip("prefect_ray")
 STARTED = "This command will now block forever"  # `ray start --block`: the node is up
 OBJECT_STORE_BYTES = 100 * 2**20  # a step passes ids, never tensors; Ray's default is 30% of memory
 TASK_STARTED = ":task_name:"  # what a Ray worker writes to its log as it starts a task
-# Ray's client server gives a client's own server 30 s to start: too few on 2 loaded cores
-SLOW_MACHINE = {"RAY_CLIENT_SERVER_CHECK_CHANNEL_TIMEOUT_S": "180"}
+NODE_ENV = {
+    # Ray's client server gives a client's own server 30 s to start: too few on 2 loaded cores
+    "RAY_CLIENT_SERVER_CHECK_CHANNEL_TIMEOUT_S": "180",
+    # Ray runs its workers at nice 15: beside other test files (xdist) or a study, the steps starved
+    "RAY_worker_niceness": "0",
+}
 NODES = (  # a driver's view of the cluster: {node id: resources} of the nodes alive
     "import json, sys, ray; ray.init(sys.argv[1], log_to_driver=False, logging_level='WARNING'); "
     "print(json.dumps({n['NodeID']: n['Resources'] for n in ray.nodes() if n['Alive']}))"
@@ -78,7 +82,7 @@ def ray_cluster(s3_endpoint) -> RayCluster:
                 "--runtime-env-agent-port",
                 str(free_port()),
             ]
-            procs.append(start(["ray", "start", *args, *node, *agents], root, name, SLOW_MACHINE))
+            procs.append(start(["ray", "start", *args, *node, *agents], root, name, NODE_ENV))
             _wait_for(lambda log=procs[-1][1]: STARTED in log.read_text(), procs, f"{name} did not start")
         nodes = _wait_for(lambda: _alive_nodes(f"127.0.0.1:{port}", 2), procs, "2 nodes are not alive")
         logs = root / "ray" / "session_latest" / "logs"
