@@ -7,7 +7,8 @@
 - `dask`: with `--address tcp://host:port`, the steps go to an existing Dask scheduler's workers;
   without, to a cluster made for the run: a LocalCluster of `--workers` single-threaded processes,
   or `--cluster-class` (an importable name) built from `--cluster-kwargs` (JSON).
-- `ray`: prefect-ray's RayTaskRunner (`--address ray://host:10001`, or a local Ray), if installed.
+- `ray`: prefect-ray's RayTaskRunner (capvector.flows.runtime.ray_runner), if installed: with `--address`,
+  a cluster's (`host:6379` from a node of it, `ray://host:10001` as a Ray client), else a local Ray.
 
 Every worker of a cluster must import this repository (the `capvector` package) and reach the home
 under the same path: steps pass the home and artifact ids, never tensors.
@@ -148,12 +149,10 @@ def _dask_runner(config: RunnerConfig) -> Any:
 
 def _ray_runner(config: RunnerConfig) -> Any:
     try:
-        from prefect_ray import RayTaskRunner
+        from capvector.flows.runtime.ray_runner import ray_runner
     except ImportError:
         raise ValueError(RAY_HINT) from None
-    if config.address:
-        return RayTaskRunner(address=config.address)
-    return RayTaskRunner(init_kwargs={"num_cpus": config.workers})
+    return ray_runner(config.address, config.workers)
 
 
 def _quiet_dask_logs() -> None:

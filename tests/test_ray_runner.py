@@ -1,0 +1,220 @@
+"""`--runner ray --address`: the steps of a run go to an existing Ray cluster, here two nodes on this
+machine (`ray start --head` offering a GPU, `ray start --address` not; one CPU each), and give the same
+artifact ids as the default process pool, through the checks the Dask tests use
+(tests/loopback_cluster.py). A step asking for cuda runs only on the node with the GPU (scheduling
+only: nothing here touches a GPU), with the driver connected as a Ray client (`ray://`). A worker
+killed mid-step (kill -9) costs a retry, not the run.
+
+Light on purpose (2 cores, a study beside it): no dashboard (each of its modules is a process), an
+object store of 100 MiB. What ran where is read from the nodes' worker logs and process titles."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from conftest import REPO
+from loopback_cluster import (
+    TESTS,
+    LoopbackCluster,
+    check_cuda_steps_run_only_on_the_gpu_worker,
+    check_smoke_run_with_an_s3_home,
+    free_port,
+    smoke_steps,
+    start,
+    stop,
+    wait_for_executed,
+    without_report_file,
+)
+
+pytest.importorskip("prefect_ray")
+
+STARTED = "This command will now block forever"  # `ray start --block`: the node is up
+OBJECT_STORE_BYTES = 100 * 2**20  # a step passes ids, never tensors; Ray's default is 30% of memory
+TASK_STARTED = ":task_name:"  # what a Ray worker writes to its log as it starts a task
+NODE_ENV = {
+    # Ray's client server gives a client's own server 30 s to start: too few on 2 loaded cores
+    "RAY_CLIENT_SERVER_CHECK_CHANNEL_TIMEOUT_S": "180",
+    # Ray runs its workers at nice 15: beside other test files (xdist) or a study, the steps starved
+    "RAY_worker_niceness": "0",
+}
+NODES = (  # a driver's view of the cluster: {node id: resources} of the nodes alive
+    "import json, sys, ray; ray.init(sys.argv[1], log_to_driver=False, logging_level='WARNING'); "
+    "print(json.dumps({n['NodeID']: n['Resources'] for n in ray.nodes() if n['Alive']}))"
+)
+
+
+@dataclass
+class RayCluster(LoopbackCluster):
+    client_address: str = ""  # ray://host:port of the head's client server
+    nodes: tuple = ()  # each node's `ray start --block` process: its raylet and workers descend from it
+
+
+@pytest.fixture(scope="module")
+def ray_cluster(s3_endpoint) -> RayCluster:
+    """A head offering a GPU and a worker node, which reach the loopback S3 server (its address and keys
+    are in their environment). The nodes start one after another: two `ray start` at once on one
+    machine took the same raylet socket, and one node died."""
+    root = Path(tempfile.mkdtemp(prefix="rayc-", dir="/tmp"))  # Ray's socket paths fit in 107 bytes
+    port, client = free_port(), free_port()
+    node = ["--object-store-memory", str(OBJECT_STORE_BYTES), "--temp-dir", str(root / "ray"), "--block"]
+    head = [
+        "--head", "--node-ip-address", "127.0.0.1", "--port", str(port), "--num-cpus", "1", "--num-gpus", "1",
+        "--ray-client-server-port", str(client), "--include-dashboard", "false",
+        "--dashboard-port", str(free_port()),
+    ]  # fmt: skip
+    worker = ["--address", f"127.0.0.1:{port}", "--num-cpus", "1"]
+    procs = []
+    try:
+        for name, args in (("gpu-node", head), ("cpu-node", worker)):
+            # each node's own ports, not 52365; with the runtime env agent's port given, the client
+            # server need not wait (30 s at most) for the head's record to learn it
+            agents = [
+                "--dashboard-agent-listen-port",
+                str(free_port()),
+                "--runtime-env-agent-port",
+                str(free_port()),
+            ]
+            procs.append(start(["ray", "start", *args, *node, *agents], root, name, NODE_ENV))
+            _wait_for(lambda log=procs[-1][1]: STARTED in log.read_text(), procs, f"{name} did not start")
+        nodes = _wait_for(lambda: _alive_nodes(f"127.0.0.1:{port}", 2), procs, "2 nodes are not alive")
+        logs = root / "ray" / "session_latest" / "logs"
+        yield RayCluster(
+            "ray", f"127.0.0.1:{port}", next(n for n, r in nodes.items() if r.get("GPU")),
+            lambda: _tasks_started(logs), lambda: _worker_output(logs),
+            client_address=f"ray://127.0.0.1:{client}", nodes=tuple(proc for proc, _ in procs),
+        )  # fmt: skip
+    finally:
+        for proc, _ in reversed(procs):
+            workers = _descendants(proc.pid)  # a worker has a process group of its own
+            stop(proc, grace_s=5)
+            for pid in workers:
+                _kill(pid)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _wait_for(check, procs, message: str, timeout_s: float = 180):
+    deadline = time.monotonic() + timeout_s
+    while not (found := check()):
+        dead = [log for proc, log in procs if proc.poll() is not None]
+        if dead or time.monotonic() > deadline:
+            logs = "\n".join(f"{log.name}: {log.read_text()[-3000:]}" for _, log in procs)
+            pytest.fail(f"ray cluster: {message}:\n{logs}")
+        time.sleep(0.5)
+    return found
+
+
+def _alive_nodes(address: str, n: int) -> dict | None:
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    proc = subprocess.run(
+        [sys.executable, "-c", NODES, address], capture_output=True, text=True, env=env, timeout=120
+    )
+    nodes = json.loads(proc.stdout.strip().splitlines()[-1]) if proc.returncode == 0 else {}
+    return nodes if len(nodes) == n else None
+
+
+def _tasks_started(logs: Path) -> dict[str, int]:
+    """Tasks each worker process has started (its pid: its log's name ends with it)."""
+    started: dict[str, int] = {}
+    for f in _err_logs(logs):
+        pid = f.stem.rsplit("-", 1)[-1]
+        started[pid] = started.get(pid, 0) + f.read_text(errors="replace").count(TASK_STARTED)
+    return started
+
+
+def _err_logs(logs: Path) -> list[Path]:
+    return sorted(logs.glob("worker-*.err"))  # worker-<id>-<job>-<pid>.err: what a step writes to fd 2
+
+
+def _worker_output(logs: Path) -> str:
+    return "\n".join(f.read_text(errors="replace") for f in _err_logs(logs))
+
+
+def _descendants(pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        kids = children.get(todo.pop(), [])
+        found += kids
+        todo += kids
+    return found
+
+
+def _kill(pid: int) -> None:
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def test_cuda_steps_run_only_on_the_gpu_node(ray_cluster):
+    """As a Ray client, through the head's client server (the other tests connect to the cluster's
+    address). One probe run: a Ray worker process serves one driver, so a second run cannot meet the
+    first one's Prefect client, as a long-lived Dask worker once did; the runs below follow it anyway."""
+    check_cuda_steps_run_only_on_the_gpu_worker(ray_cluster, [ray_cluster.client_address], n=2)
+
+
+def test_smoke_run_with_an_s3_home_on_the_cluster(ray_cluster, smoke_home, tmp_path):
+    check_smoke_run_with_an_s3_home(ray_cluster, smoke_home, tmp_path)
+
+
+def test_a_worker_killed_mid_step_costs_a_retry_not_the_run(ray_cluster, smoke_home, tmp_path):
+    """kill -9 of the worker process running a training step (its title is `ray::train` while it does):
+    Ray starts the task again, the run ends with the process pool's ids, and Ray's notice of the dead
+    worker goes to stderr, not into the JSON on stdout."""
+    out, err = tmp_path / "stdout", tmp_path / "stderr"
+    env = {**os.environ, "CAPVECTOR_HOME": str(tmp_path / "home"), "CAPVECTOR_QUIET": "1"}
+    env["PYTHONPATH"] = f"{REPO}{os.pathsep}{TESTS}"
+    argv = [sys.executable, "-m", "capvector", "run", "--preset", "smoke", *ray_cluster.runner, "--json"]
+    before = ray_cluster.executed()
+    started = time.monotonic()
+    with out.open("w") as stdout, err.open("w") as stderr:
+        proc = subprocess.Popen(argv, cwd=REPO, env=env, stdout=stdout, stderr=stderr, start_new_session=True)
+    try:
+        killed = _kill_a_training_step(ray_cluster, proc)
+        code = proc.wait(timeout=600)
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    assert killed is not None, "no worker was caught running a training step"
+    assert code == 0, err.read_text()[-3000:]
+    ids = json.loads(out.read_text())  # stdout: the JSON alone
+    assert without_report_file(ids) == without_report_file(smoke_home[1])
+    assert "(raylet)" in err.read_text()  # Ray's notice of the dead worker and the retry
+    steps = smoke_steps()
+    ran = wait_for_executed(ray_cluster, before, steps + 1)
+    assert sum(ran.values()) == steps + 1, ran  # every step, and the killed one once more
+    print(f"smoke run on the ray cluster, a step's worker killed: {time.monotonic() - started:.0f} s")
+
+
+def _kill_a_training_step(cluster: RayCluster, proc: subprocess.Popen) -> int | None:
+    """The pid of the worker killed while it ran a training step, or None if the run ended first."""
+    while proc.poll() is None:
+        for pid in (pid for node in cluster.nodes for pid in _descendants(node.pid)):
+            if _title(pid) == "ray::train":
+                _kill(pid)
+                return pid
+        time.sleep(0.2)
+    return None
+
+
+def _title(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0].decode(errors="replace").strip()
+    except OSError:
+        return ""
