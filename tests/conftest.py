@@ -284,6 +284,7 @@ def cluster(tmp_path_factory, s3_endpoint):
 # worker has nothing left to run. The rest follow as collected.
 LONGEST_FIRST = (
     "test_study_resume.py",
+    "test_ray_runner.py",
     "test_study_flow.py",
     "test_pipeline_flow.py",
     "test_cli.py",
