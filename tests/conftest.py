@@ -25,7 +25,6 @@ import json  # noqa: E402
 import logging  # noqa: E402
 import shutil  # noqa: E402
 import signal  # noqa: E402
-import socket  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -204,62 +203,24 @@ def s3_endpoint():
         server.stop()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _start(args: list[str], root: Path, name: str) -> tuple[subprocess.Popen, Path]:
-    """A dask process in its own session and HOME, importing this repository (and tests/)."""
-    home = root / name
-    home.mkdir()
-    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
-    env.update(HOME=str(home), PREFECT_HOME=str(home / "prefect"), PYTHONPATH=f"{REPO}{os.pathsep}{TESTS}")
-    log = root / f"{name}.log"
-    dask = str(Path(sys.executable).with_name("dask"))
-    proc = subprocess.Popen(
-        [dask, *args],
-        cwd=REPO,
-        env=env,
-        stdout=log.open("wb"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    return proc, log
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            pass
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)  # a nanny's worker left behind
-    except ProcessLookupError:
-        pass
-    proc.wait(timeout=30)
-
-
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory, s3_endpoint):
     """(scheduler address, {worker address: log}, GPU worker address): a scheduler and two workers,
     which reach the loopback S3 server (its address and keys are in their environment). One per test
     module: a module that kills a driver leaves no task of it running on another module's workers."""
     from distributed import Client
+    from loopback_cluster import free_port, start, stop  # it imports this module: imported when used
 
     root = tmp_path_factory.mktemp("dask-cluster")
-    port = _free_port()
+    port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     worker_args = ["worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"]
-    procs = [
-        _start(["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], root, "scheduler")
-    ]
+    scheduler = ["dask", "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
+    procs = [start(scheduler, root, "scheduler")]
     try:
         for name, extra in (("gpu-worker", ["--resources", "GPU=1"]), ("cpu-worker", [])):
-            procs.append(_start([*worker_args, "--local-directory", str(root / name), *extra], root, name))
+            argv = ["dask", *worker_args, "--local-directory", str(root / name), *extra]
+            procs.append(start(argv, root, name))
         deadline = time.monotonic() + 120
         with Client(address, timeout=120) as client:
             while len(client.scheduler_info()["workers"]) < 2:
@@ -275,7 +236,7 @@ def cluster(tmp_path_factory, s3_endpoint):
         yield address, logs, gpu
     finally:
         for proc, _ in reversed(procs):
-            _stop(proc)
+            stop(proc)
 
 
 # Test files that take longest, longest first (cold studies and runs, clusters, servers; measured on 2
