@@ -1180,6 +1180,16 @@ class ArtifactStore:
             raise ValueError(f"{path} is over {INDEX_ENTRY_MAX} bytes: not an index entry")
         return data
 
+    def iter_index_keys(self) -> list[str]:
+        """The key of every index object, sorted, from one listing of `index/*/*.json` (for `verify
+        --all`). An object that is not `<key[:2]>/<key>.json` is listed as its path under the store
+        (`index/…`), which no key matches, so a caller can name it instead of reading another key."""
+        out = []
+        for p in self.fs.glob(self._p(INDEX, "*", "*.json")):
+            shard, name = posixpath.basename(posixpath.dirname(p)), posixpath.basename(p)[: -len(".json")]
+            out.append(name if KEY_RE.match(name) and shard == name[:2] else f"{INDEX}/{shard}/{name}.json")
+        return sorted(out)
+
     def iter_runs(self) -> Iterator[RunRecord]:
         for p in sorted(self.fs.glob(self._p("runs", "*.json"))):
             yield RunRecord.model_validate_json(self.fs.cat_file(p))

@@ -6,19 +6,24 @@
 - Two processes computing one step at once: the second waits on the key's lock (an flock under
   `<home>/locks/`) and reuses the first's artifact; a lock whose holder was killed -9 blocks nothing.
 - A cached train step whose snapshot artifacts were deleted from the store is a miss and is rerun.
+- A remote home's index objects in the store (`index/<key[:2]>/<key>.json`) are checked by `verify --all`
+  too: a forged, dangling or garbled one fails it naming its key, and nothing is removed or rewritten.
 """
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
+from capvector.artifacts.store import ArtifactStore
 from capvector.flows.cli.main import app
 from capvector.tasks.runtime.caching import cached_step, lookup
 from capvector.tasks.runtime.workspace import Workspace
@@ -194,3 +199,73 @@ def test_a_train_step_whose_snapshot_left_the_store_is_rerun(trained, capfd):
     assert "'sft lr 0.001'" in err and "snapshot" in err
     assert run_train(workspace, "sft lr 0.003", inputs, configs[0.003]) == ids[0.003]  # untouched: a hit
     assert "warning" not in capfd.readouterr().err
+
+
+# ---------------------------------------------------------------------------- the store's index objects
+@pytest.fixture
+def remote_trained(tmp_path, monkeypatch):
+    """A remote home (memory://: its step-cache entries are also index objects in the store) after one
+    train step with a snapshot: (workspace, that step's cache key, its artifact id)."""
+    monkeypatch.setenv("CAPVECTOR_CACHE", str(tmp_path / "cache"))
+    workspace = Workspace(f"memory://capvector-trust-{uuid.uuid4().hex}")
+    data = workspace.api.register_dir(make_dataset().save(tmp_path / "data"), kind="dataset", name="d").id
+    train = quick(steps=8, warmup_steps=2, checkpoint_every=4, snapshot_steps=[4]).model_dump(mode="json")
+    cfg = {"policy": {"type": "l1_chunk", **TINY}, "train": train}
+    artifact_id = run_train(workspace, "sft", {"data": data}, cfg)
+    yield workspace, workspace.api.get(artifact_id).config["cache_key"], artifact_id
+    store = workspace.api.store
+    store.fs.rm(store.root, recursive=True)
+
+
+def test_verify_all_checks_index_objects_and_hashes_each_artifact_once(remote_trained, monkeypatch):
+    workspace, key, _ = remote_trained
+    store = workspace.api.store
+    assert key in store.iter_index_keys()
+    hashed: list[str] = []
+    real = ArtifactStore._verify
+
+    def counting(self, record, *args, **kwargs):
+        hashed.append(record.id)
+        return real(self, record, *args, **kwargs)
+
+    monkeypatch.setattr(ArtifactStore, "_verify", counting)
+    code, output = verify_all(workspace.home)
+    assert code == 0, output
+    counted = re.search(r"(\d+) index objects in the store: 0 bad", output)
+    assert counted and int(counted.group(1)) >= 1, output
+    assert sorted(hashed) == sorted(store.iter_ids())  # each artifact once: the index check hashed none
+
+
+@pytest.mark.parametrize("case", ["forged", "missing-id", "garbage", "oversized"])
+def test_verify_all_fails_on_a_bad_index_object_and_changes_nothing(remote_trained, case):
+    workspace, key, artifact_id = remote_trained
+    store = workspace.api.store
+    other = workspace.api.get(artifact_id).parents[0].id  # a real artifact, recorded under no such key
+    content = {
+        "forged": json.dumps({"artifact_id": other, "cache_key": key, "recorded_under": key}).encode(),
+        "missing-id": json.dumps({"artifact_id": "0" * 64, "cache_key": key, "recorded_under": key}).encode(),
+        "garbage": b"\x00\xff not json {",
+        "oversized": b"x" * 5000,
+    }[case]
+    store.put_index_entry(key, content)
+    ids = sorted(store.iter_ids())
+
+    code, output = verify_all(workspace.home)
+    assert code == 1, output
+    (line,) = [x for x in output.splitlines() if f"index/{key}" in x]
+    status, why = {
+        "forged": ("MISMATCH", other[:12]),
+        "missing-id": ("MISSING", "0" * 64),
+        "garbage": ("CORRUPT", "not an index entry"),
+        "oversized": ("CORRUPT", "4096 bytes"),
+    }[case]
+    assert line.startswith(status) and why in line, line
+    assert f"{len(ids)} artifacts" in output and "0 bad" in output  # the artifacts themselves are whole
+    assert "1 bad" in output.splitlines()[-1]
+    rows = json.loads(CliRunner().invoke(app, ["--home", workspace.home, "verify", "--all", "--json"]).stdout)
+    assert [r["status"] for r in rows if r["id"] == f"index/{key}"] == [status.lower()]
+
+    assert sorted(store.iter_ids()) == ids  # nothing removed
+    assert all(store.audit(i).status == "ok" for i in ids)
+    raw = store.fs.cat_file(store.index_entry_path(key))
+    assert raw == content  # nor rewritten

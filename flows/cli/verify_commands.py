@@ -9,7 +9,11 @@ by someone who did not also edit the catalogue). Exit 1 naming each bad id; 0 on
 With `--all`, the step cache's index (content key -> artifact id) is checked too: an entry naming an
 artifact recorded under another cache key (swapped or edited entries) is listed as
 `MISMATCH step-cache/<key>` and fails the check; a run treats such an entry as a miss
-(capvector.tasks.runtime.caching).
+(capvector.tasks.runtime.caching). So is the store's own index (`index/<key[:2]>/<key>.json`, a remote
+home's entries, listed once): each object must be an entry within its size limit naming an artifact
+of the store that is its key's result, with its companions intact; a bad one is listed as
+`CORRUPT|MISSING|MISMATCH index/<key>` and fails the check. The named artifacts are not hashed again
+(their verdicts above are reused); nothing is removed or rewritten.
 """
 
 from __future__ import annotations
@@ -54,10 +58,11 @@ def verify(
         progress.step(verdict)
     progress.close()
     cache_verdicts = _cache_verdicts(api, resolve_home(home)) if all_ else []
+    index_count, index_verdicts = _index_verdicts(api, verdicts) if all_ else (0, [])
 
     failed = [v for v in verdicts if v.bad or (strict and v.status == "unsealed")]
     if as_json:
-        typer.echo(json.dumps([v.model_dump() for v in verdicts + cache_verdicts], indent=1))
+        typer.echo(json.dumps([v.model_dump() for v in verdicts + cache_verdicts + index_verdicts], indent=1))
     else:
         for v in verdicts:
             if v.status != "ok":
@@ -72,9 +77,13 @@ def verify(
             typer.echo(f"{v.status.upper():<9} {v.id}  {v.detail}")
         if cache_verdicts:
             typer.echo(f"{len(cache_verdicts)} step-cache entries name an artifact of another key")
+        for v in index_verdicts:
+            typer.echo(f"{v.status.upper():<9} {v.id}  {v.detail}")
+        if index_count or index_verdicts:
+            typer.echo(f"{index_count} index objects in the store: {len(index_verdicts)} bad")
         if indexed is None:
             typer.echo("the catalogue could not be read: lineage was not compared with it", err=True)
-    if failed or cache_verdicts:
+    if failed or cache_verdicts or index_verdicts:
         raise typer.Exit(1)
 
 
@@ -90,6 +99,13 @@ def _cache_verdicts(api: Any, home: str) -> list[IntegrityVerdict]:
         )
         for key, problem in index_problems(home, api)
     ]
+
+
+def _index_verdicts(api: Any, verdicts: list[IntegrityVerdict]) -> tuple[int, list[IntegrityVerdict]]:
+    """(index objects in the store, a verdict per bad one); the artifacts' verdicts say which are whole."""
+    from capvector.tasks.runtime.caching import store_index_verdicts
+
+    return store_index_verdicts(api.store, {v.id: not v.bad for v in verdicts})
 
 
 def _catalogue_lineage(api: Any) -> dict[str, tuple[str, str, set[tuple[str, str]]]] | None:
