@@ -10,10 +10,10 @@ With `--all`, the step cache's index (content key -> artifact id) is checked too
 artifact recorded under another cache key (swapped or edited entries) is listed as
 `MISMATCH step-cache/<key>` and fails the check; a run treats such an entry as a miss
 (capvector.tasks.runtime.caching). So is the store's own index (`index/<key[:2]>/<key>.json`, a remote
-home's entries, listed once): each object must be an entry within its size limit naming an artifact
-of the store that is its key's result, with its companions intact; a bad one is listed as
-`CORRUPT|MISSING|MISMATCH index/<key>` and fails the check. The named artifacts are not hashed again
-(their verdicts above are reused); nothing is removed or rewritten.
+home's entries, listed once; capvector.tasks.runtime.index_verify): each object must be an entry within
+its size limit naming an artifact of the store that is its key's result, with its companions intact; a
+bad one is listed as `CORRUPT|MISSING|MISMATCH index/<key>` and fails the check. The named artifacts are
+not hashed again (their verdicts above are reused); nothing is removed or rewritten.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def _cache_verdicts(api: Any, home: str) -> list[IntegrityVerdict]:
 
 def _index_verdicts(api: Any, verdicts: list[IntegrityVerdict]) -> tuple[int, list[IntegrityVerdict]]:
     """(index objects in the store, a verdict per bad one); the artifacts' verdicts say which are whole."""
-    from capvector.tasks.runtime.caching import store_index_verdicts
+    from capvector.tasks.runtime.index_verify import store_index_verdicts
 
     return store_index_verdicts(api.store, {v.id: not v.bad for v in verdicts})
 

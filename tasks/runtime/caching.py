@@ -27,8 +27,7 @@ returned an artifact first recorded under another key (the same bytes, e.g. afte
 content addressing keeps the first record) and still says so. Artifacts the step registered beside
 its result and that the result names as parents (roles in COMPANION_ROLES: training snapshots, a
 LoRA adapter) must be intact too. Anything else is a miss: recomputed, never used, with one warning
-line naming the step (`capvector verify --all` lists such entries: `index_problems` for the folder,
-`store_index_verdicts` for the store's index objects, which must also name an artifact of the store).
+line naming the step (`capvector verify --all` lists such entries: `index_problems`).
 
 Two runs on one home: a step is computed and registered under an exclusive lock per content key
 (`<home>/locks/<key>.lock`, flock: the kernel drops it when its holder dies, even by kill -9). A run
@@ -47,17 +46,16 @@ import hashlib
 import json
 import os
 import re
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel
 
 from capvector.artifacts.errors import ArtifactError
 from capvector.artifacts.home import is_local, local_cache_dir
-from capvector.artifacts.records import IntegrityVerdict
 from capvector.core.training.execution import result_config
 from capvector.durable import write_atomic
 from capvector.tasks.runtime.step_code import step_code
@@ -66,7 +64,6 @@ from capvector.tasks.runtime.workspace import Workspace
 # Parent roles that name artifacts the step registered itself, beside its result: a hit needs them too.
 COMPANION_ROLES = ("snapshot", "adapter")
 FULL_ID_RE = re.compile(r"^[0-9a-f]{64}$")
-IndexStatus = Literal["corrupt", "missing", "mismatch"]  # an index object's verdict (store_index_verdicts)
 
 # What `cached_step` did, per call, inside a `step_outcomes()` block: "cached" or "produced".
 _outcomes: ContextVar[list[str] | None] = ContextVar("capvector_step_outcomes", default=None)
@@ -299,64 +296,6 @@ def index_problems(home: str, api: Any) -> list[tuple[str, str]]:
         if problem is not None:
             problems.append((key, problem))
     return problems
-
-
-def store_index_verdicts(store: Any, intact: Mapping[str, bool]) -> tuple[int, list[IntegrityVerdict]]:
-    """(index objects listed, a verdict `index/<key>` per bad one) for the store's content-cache index
-    (what `capvector verify --all` adds; one listing of `index/`, reads only).
-
-    An object must be an entry (at most INDEX_ENTRY_MAX bytes, JSON naming a full id, written for its
-    own key) naming an artifact of the store that is its key's result (`entry_problem`, as a hit
-    checks it) whose companions are intact. `intact`: every id of the store -> whether verify found it
-    whole, so no byte is hashed again here: only the named artifacts' sidecars are read."""
-    keys = store.iter_index_keys()
-    verdicts = []
-    for key in keys:
-        found = _index_object_problem(store, key, intact)
-        if found is not None:
-            status, detail = found
-            name = key if not FULL_ID_RE.match(key) else f"index/{key}"
-            verdicts.append(IntegrityVerdict(id=name, status=status, detail=detail))
-    return len(keys), verdicts
-
-
-def _index_object_problem(store: Any, key: str, intact: Mapping[str, bool]) -> tuple[IndexStatus, str] | None:
-    """(verdict status, what is wrong) for one index object, None when a run could use it."""
-    if not FULL_ID_RE.match(key):
-        return "corrupt", "a stray object in the index (not index/<key[:2]>/<key>.json): no run reads it"
-    miss = "; a run treats it as a miss and recomputes the step"
-    try:
-        data = store.index_entry(key)
-    except (ValueError, OSError) as e:
-        return "corrupt", f"unreadable: {e}{miss}"
-    if data is None:
-        return "missing", "listed, then gone when read (removed while verify ran?)"
-    entry = _parse_entry(data)
-    if entry is None:
-        return "corrupt", f"not an index entry (a JSON object naming a full artifact id){miss}"
-    if entry.get("cache_key", key) != key:
-        return "mismatch", f"the entry was written for key {str(entry['cache_key'])[:16]}…{miss}"
-    artifact_id = entry["artifact_id"]
-    if artifact_id not in intact:
-        return "missing", f"names artifact {artifact_id}, which is not in the store{miss}"
-    if not intact[artifact_id]:
-        return "mismatch", f"names artifact {artifact_id}, which verify found bad{miss}"
-    try:
-        record = store.get(artifact_id)
-    except (ArtifactError, OSError) as e:
-        return "corrupt", f"names artifact {artifact_id}, whose sidecar cannot be read: {e}{miss}"
-    problem = entry_problem(key, entry, recorded_key(record))
-    if problem is not None:
-        return "mismatch", problem + miss
-    lost = [
-        f"{p.role} {p.id[:12]}"
-        for p in record.parents
-        if p.role in COMPANION_ROLES and not intact.get(p.id, False)
-    ]
-    if lost:
-        lost_text = ", ".join(lost)
-        return "mismatch", f"names {artifact_id[:12]}, registered with missing or bad {lost_text}{miss}"
-    return None
 
 
 def warn(line: str) -> None:
