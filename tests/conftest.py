@@ -14,6 +14,22 @@ for _name in ("CAPVECTOR_SCRATCH", "CAPVECTOR_CACHE"):  # a developer's own sett
 if "CAPVECTOR_TEST_KEEP_PREFECT_HOME" not in os.environ:
     os.environ["PREFECT_HOME"] = tempfile.mkdtemp(prefix="capvector-prefect-")
 
+# One Prefect API server per test process (each pytest-xdist worker has its own PREFECT_HOME), which
+# every `capvector` the tests start is told about through PREFECT_API_URL, as a user with a running
+# `prefect server start` would: a flow command then checks that server instead of booting its own
+# (about 11 s of CPU each, the largest fixed cost of a small run). Its URL is exported now, before
+# anything imports Prefect, which reads it at import; the process starts with the session
+# (`session_prefect_server`). Tests of the CLI's own server pass `own_server_env`. A server named by the
+# developer's PREFECT_API_URL is used as it is; one a parent test process reserved (pytest-xdist's
+# controller, whose workers inherit its environment) is not this process's to use.
+from capvector.flows.runtime.prefect_server import RunServer  # noqa: E402
+
+SESSION_SERVER: RunServer | None = None
+if not os.environ.get("PREFECT_API_URL") or os.environ.get("CAPVECTOR_TEST_SERVER_OF"):
+    SESSION_SERVER = RunServer()
+    os.environ["PREFECT_API_URL"] = SESSION_SERVER.url
+    os.environ["CAPVECTOR_TEST_SERVER_OF"] = str(os.getpid())
+
 import torch  # noqa: E402
 
 # two pytest-xdist workers share the 2 cores of the machine the suite is sized for
@@ -36,13 +52,18 @@ REPO = Path(__file__).resolve().parent.parent
 TESTS = REPO / "tests"
 
 
-def run_in_session(argv: list[str], env: dict[str, str], timeout: float) -> subprocess.CompletedProcess:
+def run_in_session(
+    argv: list[str], env: dict[str, str], timeout: float, while_running=None
+) -> subprocess.CompletedProcess:
     """`argv` in a session of its own, output through files, not pipes; the session's leftovers are
     killed afterwards: a grandchild that outlives the command (Prefect's embedded API server on its way
-    down) must neither keep the test waiting for end-of-file nor linger."""
+    down) must neither keep the test waiting for end-of-file nor linger. `while_running(proc)` is
+    called once the command has started (a test that interferes with the run: kills a worker)."""
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(argv, cwd=REPO, env=env, stdout=out, stderr=err, start_new_session=True)
         try:
+            if while_running is not None:
+                while_running(proc)
             code = proc.wait(timeout=timeout)
         finally:
             try:
@@ -54,12 +75,36 @@ def run_in_session(argv: list[str], env: dict[str, str], timeout: float) -> subp
         return subprocess.CompletedProcess(argv, code, out.read(), err.read())
 
 
+def own_server_env(env: dict[str, str]) -> dict[str, str]:
+    """`env` without the session's Prefect server: a `capvector` started with it boots its own, as on a
+    user's machine with no server configured (the tests of that server's life need it)."""
+    if SESSION_SERVER is None or env.get("PREFECT_API_URL") != SESSION_SERVER.url:
+        return dict(env)
+    return {k: v for k, v in env.items() if k != "PREFECT_API_URL"}
+
+
+@pytest.fixture(scope="session", autouse=True)
+def session_prefect_server():
+    """The session's Prefect API server (SESSION_SERVER), up before the first test; stopped at the end."""
+    if SESSION_SERVER is None:
+        yield None
+        return
+    SESSION_SERVER.wait_ready()
+    yield SESSION_SERVER
+    SESSION_SERVER.stop()
+
+
 def run_cli(
-    *args: str, home: Path, check: bool = True, timeout: float = 900, env: dict[str, str] | None = None
+    *args: str,
+    home: Path,
+    check: bool = True,
+    timeout: float = 900,
+    env: dict[str, str] | None = None,
+    while_running=None,
 ) -> subprocess.CompletedProcess:
     """The real console entry point in a subprocess, as a user runs it (`run_in_session`)."""
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1", **(env or {})}
-    result = run_in_session([sys.executable, "-m", "capvector", *args], env, timeout)
+    result = run_in_session([sys.executable, "-m", "capvector", *args], env, timeout, while_running)
     if check and result.returncode != 0:
         raise AssertionError(
             f"capvector {' '.join(args)} failed ({result.returncode}):\n{result.stderr[-3000:]}"

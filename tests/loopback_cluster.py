@@ -22,7 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from conftest import REPO, run_cli
+from conftest import REPO, own_server_env, run_cli
 
 TESTS = REPO / "tests"
 
@@ -119,10 +119,14 @@ def wait_for_executed(cluster: LoopbackCluster, before: dict[str, int], steps: i
         time.sleep(0.5)
 
 
-def check_smoke_run_with_an_s3_home(cluster: LoopbackCluster, smoke_home, tmp_path: Path) -> None:
+def check_smoke_run_with_an_s3_home(
+    cluster: LoopbackCluster, smoke_home, tmp_path: Path, while_running=None, retries: int = 0
+) -> subprocess.CompletedProcess:
     """The home on S3, the steps on the cluster's workers (each with its own local cache, as other
     machines): the process pool's ids, lineage complete the moment the run returns, and a rerun, also
-    from a fresh driver that never saw the home, dispatches nothing."""
+    from a fresh driver that never saw the home, dispatches nothing. `while_running(proc)` interferes
+    with the first run (kills a worker), which then executes `retries` steps a second time; that run's
+    output is returned."""
     import boto3
 
     bucket = f"capvector-{uuid.uuid4().hex[:12]}"
@@ -133,7 +137,10 @@ def check_smoke_run_with_an_s3_home(cluster: LoopbackCluster, smoke_home, tmp_pa
 
     before = cluster.executed()
     started = time.monotonic()
-    proc = run_cli("run", "--preset", "smoke", *runner, home=home, env=driver, timeout=600)
+    proc = run_cli(
+        "run", "--preset", "smoke", *runner, home=home, env=driver, timeout=600, while_running=while_running
+    )
+    first = proc
     elapsed = time.monotonic() - started
     ids = json.loads(proc.stdout)
     assert without_report_file(ids) == without_report_file(smoke_home[1])
@@ -141,8 +148,8 @@ def check_smoke_run_with_an_s3_home(cluster: LoopbackCluster, smoke_home, tmp_pa
     assert Path(ids["report_file"]).is_relative_to(tmp_path / "driver-cache"), ids["report_file"]
 
     steps = smoke_steps()
-    ran = wait_for_executed(cluster, before, steps)
-    assert sum(ran.values()) == steps, ran  # every step, on a worker
+    ran = wait_for_executed(cluster, before, steps + retries)
+    assert sum(ran.values()) == steps + retries, ran  # every step, on a worker (and each retry)
     assert "[pretrain θ_pt] 30/30 steps" in cluster.worker_output()  # a step's progress, printed where it ran
 
     # the terminal: progress lines, no engine or Prefect INFO records, no teardown noise
@@ -162,6 +169,7 @@ def check_smoke_run_with_an_s3_home(cluster: LoopbackCluster, smoke_home, tmp_pa
         assert again == without_report_file(ids), name
         assert cluster.executed() == before, f"{name}: steps were sent to the workers again"
     print(f"smoke run on the {cluster.engine} cluster, S3 home: {elapsed:.0f} s, steps per worker {ran}")
+    return first
 
 
 def check_cuda_steps_run_only_on_the_gpu_worker(
@@ -170,11 +178,14 @@ def check_cuda_steps_run_only_on_the_gpu_worker(
     """One probe run per address, each with its own Prefect server (as two CLI runs have), on the same
     long-lived workers: on Dask the second one once failed every step, its workers still asking the
     first run's server for the tags' concurrency slots."""
+    # the probe boots its own Prefect server (not the test session's), as each CLI run on its own does
+    probe_env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{TESTS}", "CAPVECTOR_QUIET": "1"}
+    probe_env = own_server_env(probe_env)
     for attempt, address in enumerate(addresses, 1):
         proc = subprocess.run(
             [sys.executable, str(TESTS / "gpu_placement_probe.py"), cluster.engine, address, str(n)],
             cwd=REPO,
-            env={**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{TESTS}", "CAPVECTOR_QUIET": "1"},
+            env=probe_env,
             capture_output=True,
             text=True,
             timeout=300,

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from conftest import REPO, own_server_env
 from test_process_lifecycle import _tree
 
 pytestmark = pytest.mark.skipif(
@@ -22,7 +22,7 @@ pytestmark = pytest.mark.skipif(
 
 def test_a_fully_cached_run_starts_no_prefect_server(smoke_home, tmp_path):
     home, ids = smoke_home
-    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
+    env = own_server_env({**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"})
     out = tmp_path / "stdout"
     with out.open("wb") as handle:
         proc = subprocess.Popen(

@@ -19,7 +19,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, run_cli
+from conftest import REPO, own_server_env, run_cli
 from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
@@ -394,7 +394,7 @@ def _children_of(pid: int) -> dict[int, str]:
 
 
 def test_sigterm_stops_the_embedded_prefect_server_and_workers(tmp_path):
-    env = {**os.environ, "CAPVECTOR_HOME": str(tmp_path / "home"), "CAPVECTOR_QUIET": "1"}
+    env = own_server_env({**os.environ, "CAPVECTOR_HOME": str(tmp_path / "home"), "CAPVECTOR_QUIET": "1"})
     proc = subprocess.Popen(
         [sys.executable, "-m", "capvector", "run", "--preset", "smoke"],
         cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,

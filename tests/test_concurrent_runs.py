@@ -40,7 +40,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from conftest import REPO, run_cli
+from conftest import REPO, own_server_env, run_cli
 
 from capvector.artifacts.api import ArtifactsAPI
 
@@ -52,7 +52,7 @@ TRAINING_STARTED = re.compile(r"^\S+ \[(?P<step>[^\]]+)\] \d+/\d+ steps, (starte
 
 def _start(home: Path, out: Any, err: Any) -> subprocess.Popen:
     """`capvector run --preset smoke --json` on `home`, in a session of its own (see conftest.run_cli)."""
-    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
+    env = own_server_env({**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"})
     return subprocess.Popen(
         [sys.executable, "-m", "capvector", "run", "--preset", "smoke", "--json"],
         cwd=REPO,

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO, run_cli
+from conftest import REPO, own_server_env, run_cli
 from test_process_lifecycle import _alive, _committed, _stat, _tree, _wait_until
 
 pytestmark = pytest.mark.skipif(
@@ -32,6 +32,7 @@ MAX_LINES_AFTER = 5
 def _interrupt_when(pattern: re.Pattern, tmp_path: Path) -> None:
     home = tmp_path / "home"
     env = {**os.environ, "CAPVECTOR_HOME": str(home), "PREFECT_HOME": str(tmp_path / "prefect")}
+    env = own_server_env(env)
     env.pop("CAPVECTOR_QUIET", None)  # the progress lines say where the run is
     err_path = tmp_path / "stderr"
     with err_path.open("wb") as err, (tmp_path / "stdout").open("wb") as out:

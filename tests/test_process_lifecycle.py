@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from conftest import REPO, own_server_env
 
 pytestmark = pytest.mark.skipif(
     not Path("/proc/self/stat").exists(), reason="reads the process tree in /proc"
@@ -87,7 +87,7 @@ def _environ(pid: int) -> dict[str, str]:
 
 def test_one_server_per_run_and_kill_9_leaves_no_process_and_commits_nothing(tmp_path):
     home = tmp_path / "home"
-    env = {**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"}
+    env = own_server_env({**os.environ, "CAPVECTOR_HOME": str(home), "CAPVECTOR_QUIET": "1"})
     proc = subprocess.Popen(
         [sys.executable, "-m", "capvector", "run", "--preset", "smoke"],
         cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
