@@ -129,15 +129,16 @@ def test_the_same_bytes_under_two_keys_stay_a_hit(tmp_path):
 
 
 # ---------------------------------------------------------------------------- 4: one computation per key
-def _slow_step(home, log, seconds) -> subprocess.Popen:
+def _slow_step(home, log, hold, stderr=subprocess.PIPE) -> subprocess.Popen:
+    """tests/slow_step.py in a process of its own; `hold`: seconds, or `until=PATH` (see there)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     env.pop("CAPVECTOR_QUIET", None)
     return subprocess.Popen(
-        [sys.executable, "-c", "from tests.slow_step import main; main()", str(home), str(log), str(seconds)],
+        [sys.executable, "-c", "from tests.slow_step import main; main()", str(home), str(log), str(hold)],
         cwd=REPO,
         env=env,
         stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
+        stderr=stderr,
         text=True,
     )
 
@@ -152,16 +153,26 @@ def _wait_for_lines(path: Path, n: int, timeout: float = 120) -> None:
 
 
 def test_two_processes_running_one_step_compute_it_once(tmp_path):
+    """The first holds the key's lock until the second says it waits for it (not for a fixed time: a
+    second process that takes longer to start on a loaded machine would find the step done)."""
     home, log = tmp_path / "home", tmp_path / "computations"
-    first = _slow_step(home, log, 4)
+    release, err_path = tmp_path / "release", tmp_path / "second.err"
+    first = _slow_step(home, log, f"until={release}")
     _wait_for_lines(log, 1)  # the first is computing, under the key's lock
-    second = _slow_step(home, log, 0)
+    with err_path.open("w") as err_file:
+        second = _slow_step(home, log, 0, stderr=err_file)
+    try:
+        deadline = time.monotonic() + 120
+        while "[slow step] waiting for another run" not in err_path.read_text():
+            assert second.poll() is None and time.monotonic() < deadline, err_path.read_text()
+            time.sleep(0.05)
+    finally:
+        release.touch()
     out1, err1 = first.communicate(timeout=300)
-    out2, err2 = second.communicate(timeout=300)
-    assert first.returncode == 0 and second.returncode == 0, (err1, err2)
+    out2, _ = second.communicate(timeout=300)
+    assert first.returncode == 0 and second.returncode == 0, (err1, err_path.read_text())
     assert out1.strip() == out2.strip() and len(out1.strip()) == 64
     assert len(log.read_text().splitlines()) == 1, "the step was computed twice"
-    assert "[slow step] waiting for another run" in err2
     assert list((home / "locks").glob("*.lock"))
 
 
