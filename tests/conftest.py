@@ -24,8 +24,9 @@ if "CAPVECTOR_TEST_KEEP_PREFECT_HOME" not in os.environ:
 # controller, whose workers inherit its environment) is not this process's to use.
 from capvector.flows.runtime.prefect_server import RunServer  # noqa: E402
 
-SESSION_SERVER: RunServer | None = None
-if not os.environ.get("PREFECT_API_URL") or os.environ.get("CAPVECTOR_TEST_SERVER_OF"):
+SESSION_SERVER: RunServer | None = None  # in the copy pytest imports (`from conftest import` makes another)
+_reserved_by = os.environ.get("CAPVECTOR_TEST_SERVER_OF")
+if _reserved_by != str(os.getpid()) and (_reserved_by or not os.environ.get("PREFECT_API_URL")):
     SESSION_SERVER = RunServer()
     os.environ["PREFECT_API_URL"] = SESSION_SERVER.url
     os.environ["CAPVECTOR_TEST_SERVER_OF"] = str(os.getpid())
@@ -78,9 +79,9 @@ def run_in_session(
 def own_server_env(env: dict[str, str]) -> dict[str, str]:
     """`env` without the session's Prefect server: a `capvector` started with it boots its own, as on a
     user's machine with no server configured (the tests of that server's life need it)."""
-    if SESSION_SERVER is None or env.get("PREFECT_API_URL") != SESSION_SERVER.url:
+    if not env.get("CAPVECTOR_TEST_SERVER_OF"):  # a server the developer named is theirs
         return dict(env)
-    return {k: v for k, v in env.items() if k != "PREFECT_API_URL"}
+    return {k: v for k, v in env.items() if k not in ("PREFECT_API_URL", "CAPVECTOR_TEST_SERVER_OF")}
 
 
 @pytest.fixture(scope="session", autouse=True)
