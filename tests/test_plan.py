@@ -310,6 +310,23 @@ def test_a_lambda_cell_reads_the_same_in_every_report_including_sweeps_recorded_
     assert lambda_label({"alpha": 1.1}) == "λ none"
 
 
+def test_a_sweep_recorded_by_the_old_sweep_flow_still_renders_beside_one_a_sweep_study_records():
+    """`capvector report --sweep` reads both: the sweep flow's selection (`seed`, an absolute `lambda`)
+    and a sweep study's (`seeds`, the λ forms' names)."""
+    from capvector.flows.recipe.report import _sweep_seed
+    from capvector.flows.study.report import sweep_markdown
+
+    cells = [{"alpha": a, "lambda": 1e-4, "validation_success": v} for a, v in ((0.5, 0.25), (1.1, 0.5))]
+    old = {"arm": "capvector", "seed": 0, "grid": cells, "best": cells[1]}
+    cell = {"alpha": 1.1, "lambda_relative": 0.1, "validation_success": 1.0}
+    new = {"arm": "capvector", "seeds": [0], "grid": [cell], "best": cell}
+    assert sweep_markdown(old).splitlines()[2:] == [
+        "| 0.5 | λ_abs=0.0001 | 25.0% |", "| 1.1 | λ_abs=0.0001 | 50.0% **(best)** |"
+    ]  # fmt: skip
+    assert sweep_markdown(new).splitlines()[2:] == ["| 1.1 | λ_rel=0.1 | 100.0% **(best)** |"]
+    assert (_sweep_seed(old), _sweep_seed(new)) == (0, "0")
+
+
 GATE_ONLY = ["study.gate=true", "study.arms=[sft,aux,sft_from_ao,sft_from_ft]"]
 
 
