@@ -235,3 +235,33 @@ def test_switching_a_flow_preset_back_to_l1_chunk_drops_the_flow_keys(tmp_path):
             pytest.raises(ConfigKeyError, match=r"'policy.in"),
         ):
             load_config(str(path), overrides)
+
+
+def test_a_pipeline_and_a_study_share_the_recipes_settings_and_differ_only_in_what_each_adds():
+    from capvector.flows.recipe.config import RecipeSettings
+    from capvector.flows.study.config import StudyConfig
+
+    shared = set(RecipeSettings.model_fields)
+    assert set(PipelineConfig.model_fields) - shared == {"alpha", "arms", "sweep"}
+    assert set(StudyConfig.model_fields) - shared == {"study"}
+    assert {"orthogonal", "seeds", "evaluation", "splits"} <= shared
+
+
+@pytest.mark.parametrize("field, value", [("alpha", 1.1), ("arms", ["sft", "capvector"]), ("sweep", {})])
+def test_a_study_preset_that_sets_what_only_a_pipeline_takes_is_refused_naming_it(tmp_path, field, value):
+    """A study chooses α from study.alphas, compares study.arms and has no sweep grid: a preset that sets
+    them at top level would be silently ignored, so it is refused."""
+    import yaml
+
+    from capvector.flows.recipe.config import PRESET_DIR
+    from capvector.flows.study.config import load_study
+
+    data = yaml.safe_load((PRESET_DIR / "study-smoke.yaml").read_text())
+    preset = tmp_path / "study-with-a-pipeline-field.yaml"
+    preset.write_text(yaml.safe_dump({**data, field: value}))
+    with pytest.raises(ValidationError) as refused:
+        load_study(str(preset))
+    (error,) = refused.value.errors()
+    assert error["loc"] == (field,) and error["type"] == "extra_forbidden"
+    assert re.search(rf"^{field}\n  Extra inputs are not permitted", str(refused.value), re.M)
+    load_study("study-smoke")  # the preset itself loads

@@ -1,6 +1,6 @@
 """`capvector run` end to end on the smoke preset: the recipe run once, as the smallest study (one γ draw,
 nothing chosen, no gate; capvector.flows.study.recipe) on the study flow: caching, partial re-runs,
-lineage, resume, the sweep beside it."""
+lineage, resume; the α × λ sweep beside it, a study too (on the run's γ, ending at its selection)."""
 
 import json
 import os
@@ -17,9 +17,8 @@ from capvector.artifacts.api import ArtifactsAPI
 from capvector.artifacts.scores import read_scores
 from capvector.core.simulation.demos import VALIDATION_SEED_BASE
 from capvector.flows.recipe.config import load_config
-from capvector.flows.recipe.sweep import sweep_flow
 from capvector.flows.study.flow import study_flow
-from capvector.flows.study.recipe import recipe_study
+from capvector.flows.study.recipe import recipe_study, sweep_study
 
 UPSTREAM = ("pretrained", "standard", "auxiliary", "vector", "meta")
 KINDS = {  # 5 demo sets (3 + 2 held out); θ_pt, θ_ft, θ_ao (each kept at 10 and 15 steps too), θ_meta,
@@ -184,25 +183,48 @@ def test_a_pixels_run_says_how_to_test_its_checkpoints_through_the_ood_camera():
     )
 
 
-def test_sweep_picks_alpha_and_lambda_on_validation_seeds_and_shares_the_runs_demos_and_base(smoke_home):
+def _sweep(home, overrides=()):
+    """`capvector sweep`'s flow: the preset's α × λ sweep as a study (capvector.flows.study.recipe)."""
+    config = sweep_study(load_config("smoke", list(overrides))).model_dump(mode="json")
+    state = study_flow(config, str(home), return_state=True)
+    assert state.is_completed(), state
+    return state.result(), settled_task_states(state.state_details.flow_run_id)
+
+
+def test_sweep_is_a_study_on_the_runs_gamma_that_picks_alpha_and_lambda_on_validation_goals(smoke_home):
     home, ids = smoke_home
-    config = load_config("smoke", ["sweep.alphas=[0.5, 1.1]", "sweep.lambdas_absolute=[1.0e-4]"])
-    result = sweep_flow(config.model_dump(mode="json"), str(home))
+    result, states = _sweep(home, ["sweep.alphas=[0.5, 1.1]", "sweep.lambdas_absolute=[1.0e-4]"])
+    # the run's demos, θ_pt, θ_ft, θ_ao and γ: the same steps, answered by the cache
+    for step in ("pretrain theta_pt", "draw 0 standard SFT theta_ft", "draw 0 auxiliary SFT theta_ao",
+                 "draw 0 capability vector gamma"):  # fmt: skip
+        assert states[step] == "Cached", (step, states)
+    for key in ("pretrained", "standard", "auxiliary", "vector"):
+        assert result["products"][key] == ids[key], key
+    assert result["products"]["datasets"] == {k: ids["datasets"][k] for k in result["products"]["datasets"]}
+    assert not any(name.startswith(("test", "analyse", "held-out")) for name in states), states  # it ends
     api = ArtifactsAPI(str(home))
-    assert [(row["alpha"], row["lambda_absolute"]) for row in result["grid"]] == [(0.5, 1e-4), (1.1, 1e-4)]
-    assert result["best"] == max(result["grid"], key=lambda row: row["validation_success"])
-    for row in result["grid"]:
-        (evaluation_id,) = row["evaluation_ids"]  # one budget: the sweep judges the final one
+    doc = api.store.open_json(result["sweep"])
+    assert api.get(result["sweep"]).kind == "selection"
+    assert list(result["selections"].values()) == [result["sweep"]]
+    assert [(row["alpha"], row["lambda_absolute"]) for row in doc["grid"]] == [(0.5, 1e-4), (1.1, 1e-4)]
+    assert doc["best"] == max(doc["grid"], key=lambda row: row["validation_success"])
+    assert doc["arm"] == "capvector" and doc["seeds"] == [0]  # the preset's first seed
+    for row in doc["grid"]:
+        (evaluation_id,) = row["evaluation_ids"]  # no budgets: the sweep judges the final checkpoint
         evaluation = api.get(evaluation_id).config
         assert evaluation["eval"]["seed_base"] == VALIDATION_SEED_BASE  # never the test seeds
         (scores,) = read_scores(api, evaluations=[evaluation_id])
         assert scores.mean_success == row["validation_success"]
-    assert api.get(result["sweep"]).kind == "selection"
-    ancestors = {r.id for r in api.ancestors(result["grid"][1]["checkpoint_ids"][0])}
-    assert {ids["pretrained"], ids["datasets"]["downstream"]} <= ancestors  # the run's demos and θ_pt
+    # the cell at the preset's own α and λ is the run's CapVector arm (the same steps, cached)
+    assert doc["grid"][1]["checkpoint_ids"] == [ids["checkpoints"]["capvector/seed0"]]
 
-    one_cell = load_config("smoke", ["sweep.alphas=[1.1]", "sweep.lambdas_absolute=[1.0e-4]"]).model_dump(
-        mode="json"
-    )
-    one_cell = sweep_flow(one_cell, str(home))
-    assert one_cell["grid"] == result["grid"][1:]  # every step cached
+    one_cell, _ = _sweep(home, ["sweep.alphas=[1.1]", "sweep.lambdas_absolute=[1.0e-4]"])
+    assert api.store.open_json(one_cell["sweep"])["grid"] == doc["grid"][1:]  # every training step cached
+
+    # `capvector sweep` on the smoke preset (this grid): the cache answers it; the table, the best α, λ
+    best = doc["best"]
+    out = run_cli("sweep", "--preset", "smoke", home=home).stdout
+    assert f"best: α={best['alpha']} λ_abs=0.0001  (sweep {result['sweep']})" in out, out
+    assert out.count("**(best)**") == 1 and "| α | λ | validation success |" in out
+    as_json = json.loads(run_cli("sweep", "--preset", "smoke", "--json", home=home).stdout)
+    assert as_json == {"sweep": result["sweep"], **doc}

@@ -9,7 +9,7 @@ import pytest
 from capvector.flows.recipe.config import load_config
 from capvector.flows.study.config import load_study
 from capvector.flows.study.plan import gated_study_plan, study_plan, study_steps
-from capvector.flows.study.recipe import recipe_study
+from capvector.flows.study.recipe import recipe_study, sweep_study
 from capvector.tasks.steps.training import OrthogonalSettings
 
 
@@ -96,6 +96,50 @@ def test_the_recipe_run_once_is_the_smallest_study_with_the_presets_values(prese
     design = by_label[f"analyse study {recipe.name}"].config
     assert design["given"] and design["chosen"]["alpha"] == recipe.alpha
     assert design["chosen"]["lambda_absolute"] == recipe.orthogonal.lambda_absolute
+
+
+@pytest.mark.parametrize("preset", ["smoke", "quick", "hard", "paper", "paper-cpu"])
+def test_a_sweep_is_the_runs_gamma_then_its_grid_chosen_by_the_studys_selection_and_nothing_more(preset):
+    """Issue 35: `capvector sweep` is a study that ends at its α × λ selection: the run's demos, θ_pt and
+    γ (the same steps: cached where `run` ran), then per α a merge and per λ a run at seeds[0] and its
+    validation, chosen by the study's own `select α and λ`; no test, held-out loss or analysis."""
+    recipe = load_config(preset)
+    cfg = sweep_study(recipe)
+    plan = study_plan(cfg)
+    run = {(p.task, repr(p.config)) for p in study_plan(recipe_study(recipe))}
+    lambdas = recipe.sweep.lambda_cells(recipe.orthogonal)
+    cells = len(recipe.sweep.alphas) * len(lambdas)
+    upstream = [p for p in plan if not p.step.startswith(("tune", "validate", "select"))]
+    assert labels(upstream) == [
+        "demos pretrain", "demos extraction", "demos downstream", "pretrain θ_pt",
+        "draw 0 standard SFT θ_ft", "draw 0 auxiliary SFT θ_ao", "draw 0 capability vector γ",
+    ]  # fmt: skip
+    assert all((p.task, repr(p.config)) in run for p in upstream)  # the run's own steps
+    assert len(plan) == len(upstream) + len(recipe.sweep.alphas) + 2 * cells + 1
+    tuned = [p for p in plan if p.step.startswith(f"tune {recipe.sweep.arm} α=")]
+    assert {p.config["train"]["seed"] for p in tuned} == {recipe.seeds[0]} and len(tuned) == cells
+    assert all(p.config["train"]["steps"] == recipe.downstream.steps for p in tuned)
+    (select,) = [p for p in plan if p.task == "select"]
+    assert [c["values"] for c in select.config["candidates"]] == [
+        {"alpha": a, **lam} for a in recipe.sweep.alphas for lam in lambdas
+    ]
+    assert select.config["context"] == {"seeds": [recipe.seeds[0]], "endpoint": [recipe.downstream.steps],
+                                         "arm": recipe.sweep.arm}  # fmt: skip
+
+
+def test_a_sweep_of_an_arm_without_the_orthogonal_loss_has_one_cell_per_alpha():
+    cfg = sweep_study(load_config("smoke", ["sweep.arm=meta_sft", "sweep.alphas=[0.5, 1.1]"]))
+    (select,) = [p for p in study_plan(cfg) if p.task == "select"]
+    assert [c["values"] for c in select.config["candidates"]] == [{"alpha": 0.5}, {"alpha": 1.1}]
+    sweep = ["study.sweep_arm=capvector", "study.draws=[0]", "study.gate=false"]
+    sweep.append("study.extraction_lrs=[1.0e-3]")
+    with pytest.raises(ValueError, match=r"study\.extraction_aux_weights must hold one value each, used as"):
+        load_study("study-smoke", sweep)
+    sweep.append("study.extraction_aux_weights=[0.5]")
+    with pytest.raises(ValueError, match=r"a sweep compares nothing .* but study\.arms, study\.aux_weights"):
+        load_study("study-smoke", sweep)
+    loaded = load_study("study-smoke", [*sweep, "study.arms=[]", "study.aux_weights=[]"])
+    assert loaded.study.sweep_arm == "capvector" and loaded.study.needs_gamma
 
 
 def test_another_seed_adds_a_run_its_test_and_its_held_out_loss_per_arm_to_a_run():
@@ -264,6 +308,23 @@ def test_a_lambda_cell_reads_the_same_in_every_report_including_sweeps_recorded_
     assert lambda_label({"alpha": 1.1, "lambda_absolute": 1e-4}) == "λ_abs=0.0001"
     assert lambda_label({"alpha": 1.1, "lambda": 1e-4}) == "λ_abs=0.0001"  # an old sweep
     assert lambda_label({"alpha": 1.1}) == "λ none"
+
+
+def test_a_sweep_recorded_by_the_old_sweep_flow_still_renders_beside_one_a_sweep_study_records():
+    """`capvector report --sweep` reads both: the sweep flow's selection (`seed`, an absolute `lambda`)
+    and a sweep study's (`seeds`, the λ forms' names)."""
+    from capvector.flows.recipe.report import _sweep_seed
+    from capvector.flows.study.report import sweep_markdown
+
+    cells = [{"alpha": a, "lambda": 1e-4, "validation_success": v} for a, v in ((0.5, 0.25), (1.1, 0.5))]
+    old = {"arm": "capvector", "seed": 0, "grid": cells, "best": cells[1]}
+    cell = {"alpha": 1.1, "lambda_relative": 0.1, "validation_success": 1.0}
+    new = {"arm": "capvector", "seeds": [0], "grid": [cell], "best": cell}
+    assert sweep_markdown(old).splitlines()[2:] == [
+        "| 0.5 | λ_abs=0.0001 | 25.0% |", "| 1.1 | λ_abs=0.0001 | 50.0% **(best)** |"
+    ]  # fmt: skip
+    assert sweep_markdown(new).splitlines()[2:] == ["| 1.1 | λ_rel=0.1 | 100.0% **(best)** |"]
+    assert (_sweep_seed(old), _sweep_seed(new)) == (0, "0")
 
 
 GATE_ONLY = ["study.gate=true", "study.arms=[sft,aux,sft_from_ao,sft_from_ft]"]

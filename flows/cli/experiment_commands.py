@@ -39,7 +39,7 @@ FLOW_COMMANDS = {"run", "study", "calibrate", "evaluate", "reevaluate", "sweep",
 
 def _boot_server() -> None:
     """Spawn the run's reserved Prefect server now, so that it boots while the command imports torch
-    and the flows: for a command sure to run a flow (evaluate, reevaluate, sweep; run and study on a
+    and the flows: for a command sure to run a flow (evaluate, reevaluate; run, study and sweep on a
     new home). Otherwise `preflight` starts it, once the content cache has not answered the plan."""
     from capvector.flows.runtime.prefect_server import start_server_now
 
@@ -441,30 +441,37 @@ def calibrate(
 
 @runner_options()
 def sweep(
-    preset: str = "quick",
+    preset: Annotated[str, typer.Option(help="smoke | quick | paper | path to a YAML file")] = "quick",
     overrides: SetOption = None,
     home: HomeOption = None,
     as_json: JsonOption = False,
+    dry_run: DryRunOption = False,
     runner_config: Any = None,  # capvector.flows.runtime.task_runners.RunnerConfig, from the runner options
 ) -> None:
-    """Grid over α and λ for the CapVector arm, picked on validation seeds (never the test seeds)."""
-    _boot_server()
+    """Choose α and λ for `sweep.arm` (capvector) on validation goals (never the test goals): the preset's
+    `sweep` grid as a study that ends at its α × λ selection (flows/study/recipe.py), on the γ `run`
+    makes (cached where it ran). `--json`: the selection, with its id as `sweep`."""
+    if _new_home(home, dry_run):
+        _boot_server()
+    from functools import partial
+
     from capvector.flows.recipe.config import lambda_label, load_config
-    from capvector.flows.recipe.sweep import sweep_flow, sweep_markdown
+    from capvector.flows.study.plan import plan_study, study_plan
+    from capvector.flows.study.recipe import sweep_study
 
-    config = load_config(preset, overrides)
-    preflight(f"sweep --preset {preset}", home)
-    from capvector.flows.runtime.run_records import run_tags
-
-    with run_tags("sweep", config.name):
-        result = _on_runner(sweep_flow, runner_config)(config.model_dump(mode="json"), resolve_home(home))
+    config = sweep_study(load_config(preset, overrides))
+    planned = [p.step for p in study_plan(config)]
+    flow = "capvector.flows.study.flow:study_flow"
+    plan, label = partial(plan_study, config), f"study {config.name}"
+    args = (f"sweep --preset {preset}", home, plan, len(planned), label, dry_run, flow, config, runner_config)
+    result = _answer_or_run(*args, planned)
+    doc = workspace(home).api.store.open_json(result["sweep"])
     if as_json:
-        print_json(result)
-    else:
-        console.print(sweep_markdown(result))
-        console.print(
-            f"best: α={result['best']['alpha']} {lambda_label(result['best'])}  (sweep {result['sweep']})"
-        )
+        print_json({"sweep": result["sweep"], **doc})
+        return
+    typer.echo(result["markdown"])  # Markdown as written (a console would re-wrap its table)
+    best = doc["best"]
+    typer.echo(f"best: α={best['alpha']} {lambda_label(best)}  (sweep {result['sweep']})")
 
 
 def schedule(

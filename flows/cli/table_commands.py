@@ -10,8 +10,9 @@ from the catalogue alone:
   training's wall time from its summary (steps trained here / steps per second); code_revision: the
   `git describe` of the checkout that trained it (its record's `code_version`, a catalogue column);
 - stage and arm from its name as the flows give it: `downstream <arm> [draw|replicate <d>] seed <s>`
-  (downstream), `tune <arm> ...` (tuning), `<arm> α=...` (sweep), `... θ_pt` (pretrain), `... θ_ft` /
-  `... θ_ao` (extraction), anything else `other`;
+  (downstream), `tune <arm> ...` (tuning, a sweep's cells included), `<arm> α=...` (sweep: the sweep flow's
+  cells, before a sweep was a study), `... θ_pt` (pretrain), `... θ_ft` / `... θ_ao` (extraction), anything
+  else `other`;
 - draw (replicate): `draw <d>` (`replicate <r>`) in its name, else in the name of its `init` or
   `regularized_by` parent (a study's `downstream capvector seed 0` starts from `draw 1 merge θ_meta`);
   none for runs shared by every draw;

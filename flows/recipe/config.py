@@ -1,7 +1,10 @@
-"""The pipeline's configuration: one pydantic model, composed of the library's own config models.
+"""The recipe's configuration, composed of the library's own config models: RecipeSettings, what every
+experiment sets, and PipelineConfig, a pipeline preset (`capvector run`, `capvector sweep`), which adds the
+values a run takes as given. A study's config (capvector.flows.study.config.StudyConfig) is the other
+RecipeSettings.
 
-Presets (`flows/presets/*.yaml`) are instances of it; `--set a.b=value` overrides are checked
-against it before validation (`capvector.flows.recipe.overrides`).
+Presets (`flows/presets/*.yaml`) are instances of them; `--set a.b=value` overrides are checked
+against the model before validation (`capvector.flows.recipe.overrides`).
 """
 
 from __future__ import annotations
@@ -238,7 +241,8 @@ def lambda_label(values: dict[str, Any]) -> str:
 
 
 class SweepSettings(LambdaGrid):
-    """The α × λ grid of the `sweep` flow; choices are made on validation seeds only."""
+    """The α × λ grid of `capvector sweep` (a study: capvector.flows.study.recipe.sweep_study); choices
+    are made on validation goals only."""
 
     alphas: list[float] = Field(
         default_factory=lambda: [0.5, 1.1, 1.5],
@@ -249,7 +253,13 @@ class SweepSettings(LambdaGrid):
     )
 
 
-class PipelineConfig(BaseModel):
+class RecipeSettings(BaseModel):
+    """What every experiment on the recipe sets: the splits, the demonstrations, the policy, the three
+    training stages, the auxiliary objective, γ's tensors, the orthogonal loss, the adapters, the seeds and
+    the evaluation. A pipeline preset (PipelineConfig) adds the values a run takes as given (`alpha`,
+    `arms`, the `sweep` grid); a study (capvector.flows.study.config.StudyConfig) adds its `study` design
+    instead, and refuses those three by name (extra fields are forbidden)."""
+
     # NaN or inf in α or a learning rate would only fail after training: refused here, naming the field
     # (the nested configs refuse them too: TrainConfig, AuxConfig, OrthogonalSettings, LoRA, LoRA-SP).
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -266,12 +276,6 @@ class PipelineConfig(BaseModel):
     )
     downstream: TrainConfig = Field(description="each arm's fine-tuning on D_down")
     vector: VectorFilter = Field(VectorFilter(), description="which tensors γ covers (and θ_meta changes)")
-    alpha: float = Field(
-        1.1,
-        allow_inf_nan=False,
-        description="merge coefficient α: θ_meta = θ_pt + α·γ (the paper's best is 1.1; 0: no capability "
-        "added); chosen on validation by `sweep`; a study chooses its own from study.alphas",
-    )
     orthogonal: OrthogonalSettings = Field(
         OrthogonalSettings(), description="the orthogonal loss λ·Σ|γ ⊙ Δ'| of the capvector arms"
     )
@@ -295,12 +299,6 @@ class PipelineConfig(BaseModel):
         "times full fine-tuning's); null: downstream.lr. Choose it on validation goals, e.g. a one-cell "
         "`sweep` with sweep.arm=sft_lora",
     )
-    arms: list[ArmName] = Field(
-        default_factory=lambda: ["sft", "aux", "capvector"],
-        description="downstream recipes compared: sft (from θ_pt), aux (SFT + aux objective), capvector "
-        "(from θ_meta with the orthogonal loss), meta_sft (from θ_meta, plain SFT), and the *_lora / "
-        "*_lora_sp / *_adalora adapter variants; a study uses study.arms instead",
-    )
     seeds: list[int] = Field(
         default_factory=lambda: [0],
         min_length=1,
@@ -308,10 +306,9 @@ class PipelineConfig(BaseModel):
         "so more seeds give tighter comparisons at proportional cost",
     )
     evaluation: EvalSettings = Field(EvalSettings(), description="how checkpoints are tested")
-    sweep: SweepSettings = Field(SweepSettings(), description="the α × λ grid of `capvector sweep`")
 
     @model_validator(mode="after")
-    def _consistent(self) -> PipelineConfig:
+    def _consistent(self) -> RecipeSettings:
         if self.policy.obs_mode != self.data.obs_mode:
             raise ValueError(
                 f"policy.obs_mode ({self.policy.obs_mode}) differs from data.obs_mode ({self.data.obs_mode})"
@@ -407,8 +404,8 @@ class PipelineConfig(BaseModel):
             orthogonal=orthogonal,
         )
 
-    def merge_config(self, alpha: float | None = None) -> MergeConfig:
-        return MergeConfig(alpha=self.alpha if alpha is None else alpha, **self.vector.model_dump())
+    def merge_config(self, alpha: float) -> MergeConfig:
+        return MergeConfig(alpha=alpha, **self.vector.model_dump())
 
     def eval_config(self, validation: bool = False, camera: str | None = None) -> EvalConfig:
         return EvalConfig(
@@ -427,6 +424,25 @@ class PipelineConfig(BaseModel):
             batch_size=self.evaluation.batch_size,
             record_video=0 if validation else self.evaluation.record_video,
         )
+
+
+class PipelineConfig(RecipeSettings):
+    """A pipeline preset (`capvector run`, `capvector sweep`): the recipe's settings and the values a run
+    takes as given, which a study chooses or fixes itself."""
+
+    alpha: float = Field(
+        1.1,
+        allow_inf_nan=False,
+        description="merge coefficient α: θ_meta = θ_pt + α·γ (the paper's best is 1.1; 0: no capability "
+        "added); chosen on validation by `sweep`; a study chooses its own from study.alphas",
+    )
+    arms: list[ArmName] = Field(
+        default_factory=lambda: ["sft", "aux", "capvector"],
+        description="downstream recipes compared: sft (from θ_pt), aux (SFT + aux objective), capvector "
+        "(from θ_meta with the orthogonal loss), meta_sft (from θ_meta, plain SFT), and the *_lora / "
+        "*_lora_sp / *_adalora adapter variants; a study uses study.arms instead",
+    )
+    sweep: SweepSettings = Field(SweepSettings(), description="the α × λ grid of `capvector sweep`")
 
 
 def preset_path(preset: str) -> Path:
@@ -469,9 +485,9 @@ def read_preset(preset: str, kind: str) -> dict:
 
 
 def load_config(
-    preset: str = "quick", overrides: list[str] | None = None, model: type[PipelineConfig] | None = None
-) -> PipelineConfig:
-    """A preset with `--set` overrides, validated by `model` (PipelineConfig; a study's is a subclass)."""
+    preset: str = "quick", overrides: list[str] | None = None, model: type[RecipeSettings] | None = None
+) -> RecipeSettings:
+    """A preset with `--set` overrides, validated by `model` (PipelineConfig; a study's StudyConfig)."""
     model = model or PipelineConfig
     data = read_preset(preset, "pipeline" if model is PipelineConfig else "study")
     return model.model_validate(apply_overrides(data, list(overrides or []), model))

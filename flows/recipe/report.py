@@ -111,14 +111,20 @@ def _trained_with(workspace: Workspace, checkpoint_id: str, key: str) -> Any:
     return trained_with(workspace.api.get(checkpoint_id).config, key)
 
 
+def _sweep_seed(doc: dict[str, Any]) -> Any:
+    """A sweep's training seed: `seed` in one the sweep flow recorded, the tuning `seeds` in one a sweep
+    study (`capvector sweep`) records."""
+    return doc["seed"] if "seed" in doc else ", ".join(map(str, doc["seeds"]))
+
+
 def _sweep_section(workspace: Workspace, sweep_id: str, doc: dict[str, Any]) -> str:
-    from capvector.flows.recipe.sweep import sweep_markdown
+    from capvector.flows.study.report import sweep_markdown
 
     best = doc["best"]
     lr = _trained_with(workspace, best["checkpoint_ids"][0], "lr")
     return (
         f"\n## α × λ sweep `{sweep_id[:12]}` "
-        f"(validation goal variations, arm `{doc['arm']}`, seed {doc['seed']}"
+        f"(validation goal variations, arm `{doc['arm']}`, seed {_sweep_seed(doc)}"
         f"{f', lr {lr:g}' if lr is not None else ''})\n\n"
         + sweep_markdown(doc)
         + f"\nChosen: α = {best['alpha']}, {lambda_label(best)} (validation success "
@@ -131,7 +137,7 @@ def _learning_rate_section(workspace: Workspace, cells: list[tuple[str, dict[str
     rows = []
     for sid, doc in cells:
         lr = _trained_with(workspace, doc["best"]["checkpoint_ids"][0], "lr") or 0.0
-        rows.append((doc["arm"], lr, sid, doc["best"], doc["seed"]))
+        rows.append((doc["arm"], lr, sid, doc["best"], _sweep_seed(doc)))
     rows.sort()
     best = {arm: max(r[3]["validation_success"] for r in rows if r[0] == arm) for arm, *_ in rows}
     lines = [

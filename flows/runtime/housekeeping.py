@@ -52,8 +52,8 @@ KEEP_RUN_DAYS = 30.0
 KEEP_RUNS = 500
 # A log written to within this many seconds belongs to a run still going: never deleted.
 ACTIVE_S = 600.0
-# The flows this project defines (study, sweep, evaluation_flows; `pipeline`, `capvector run`'s
-# flow until it became a study): the only ones pruned.
+# The flows this project defines (study, evaluation_flows; `pipeline` and `sweep`, `capvector run`'s and
+# `capvector sweep`'s flows until they became studies): the only ones pruned.
 CAPVECTOR_FLOWS = ("pipeline", "study", "sweep", "evaluate", "reevaluate")
 # How long to wait for the server's background deletion of the pruned runs' logs.
 LOG_DELETION_WAIT_S = 20.0

@@ -1,10 +1,11 @@
-"""The `study` flow's configuration: the pipeline's settings plus the experiment's design.
+"""The `study` flow's configuration: the recipe's settings (RecipeSettings) plus the experiment's design.
 
 Everything the study decides before it runs is here, so a preset *is* the pre-registration: the grids
 values are chosen from (on validation goals), the γ draws and training seeds, the declared primary
-endpoint (an early downstream budget) and the curve's budgets. What the pipeline takes as given
-(`alpha`, `sweep`, `arms`) the study chooses or fixes itself and ignores there; λ's grid is
-`study.lambdas_relative` + `study.lambdas_absolute`, or, both empty, the `orthogonal` section's one λ.
+endpoint (an early downstream budget) and the curve's budgets. What a pipeline preset takes as given
+(`alpha`, `sweep`, `arms`) the study chooses or fixes itself: a study preset that sets them is refused,
+naming the field. λ's grid is `study.lambdas_relative` + `study.lambdas_absolute`, or, both empty, the
+`orthogonal` section's one λ.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pydantic import ConfigDict, Field, NonNegativeInt, model_validator
 
 from capvector.core.evaluation.rollouts import EvalConfig
 from capvector.core.simulation.demos import UNIT_SEEDS, DemoConfig
-from capvector.flows.recipe.config import LambdaGrid, PipelineConfig, load_config
+from capvector.flows.recipe.config import ArmName, LambdaGrid, RecipeSettings, load_config
 from capvector.flows.study.variants import Variant, check_variants, variant_config
 from capvector.tasks.steps.training import TrainStepConfig
 
@@ -104,6 +105,10 @@ class StudySettings(LambdaGrid):
         sft_lrs: full fine-tuning's lr grid, chosen like a variant's; empty: `downstream.lr`.
         compare: declared (arm, baseline) pairs among the variants (and sft) compared besides each
             variant against sft, e.g. `[[lora_sp_b64, lora_r64]]` (paired by seed and goal).
+        sweep_arm: set, the study is an α × λ sweep of this arm (`capvector sweep`, flows/study/recipe.py)
+            and ends at its selection: the arm's α × λ cells, trained at the tuning seeds on the γ of the
+            one draw (extraction values given: one each) and chosen on validation goals; nothing is
+            compared, tested or analysed (arms, variants and the other grids stay empty, gate false).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -126,12 +131,13 @@ class StudySettings(LambdaGrid):
     arms: list[StudyArm] = Field(default_factory=lambda: list(ALL_ARMS))
     n_boot: int = Field(2000, ge=100)
     gate: bool = True
+    sweep_arm: ArmName | None = None
 
     @property
     def needs_gamma(self) -> bool:
         """Whether an arm depends on γ (anything but `sft`, `aux` and the variants, all from θ_pt): only
-        then do the extraction stage, the γ draws and the gate run."""
-        return any(arm not in SHARED_ARMS for arm in self.arms)
+        then do the extraction stage, the γ draws and the gate run. A sweep always merges γ."""
+        return self.sweep_arm is not None or any(arm not in SHARED_ARMS for arm in self.arms)
 
     @property
     def chooses(self) -> bool:
@@ -156,7 +162,7 @@ class StudySettings(LambdaGrid):
         bad = [name for name in positive if any(x <= 0 for x in getattr(self, name))]
         if bad:
             raise ValueError(f"study.{', study.'.join(bad)} must be positive")
-        if "sft" not in self.arms:
+        if "sft" not in self.arms and self.sweep_arm is None:
             raise ValueError("study.arms must include sft: every comparison is against it")
         twice = sorted({arm for arm in self.arms if self.arms.count(arm) > 1})
         if twice:
@@ -187,10 +193,33 @@ class StudySettings(LambdaGrid):
         if self.tuning_vector_draws:
             raise ValueError("study.tuning_vector_draws need study.tuning_seeds: they are tuning's vector")
 
+    def _sweep(self) -> None:
+        """A sweep chooses α × λ alone, on the γ of one draw: every other value is given, nothing compared."""
+        if not self.tuning_seeds:
+            raise ValueError("study.sweep_arm needs study.tuning_seeds: the seeds of its α × λ runs")
+        if len(self.draws) != 1:
+            raise ValueError(f"study.sweep_arm: a sweep tunes on one γ, study.draws lists {self.draws}")
+        given = ("extraction_lrs", "extraction_aux_weights")
+        wide = [f"study.{name}" for name in given if len(getattr(self, name)) != 1]
+        if wide:
+            raise ValueError(f"study.sweep_arm: {', '.join(wide)} must hold one value each, used as given")
+        unused = ("arms", "variants", "sft_lrs", "compare", "aux_weights", "tuning_vector_draws", "gate")
+        unused = [f"study.{name}" for name in unused if getattr(self, name)]
+        unused += ["study.dose_alpha"] if self.dose_alpha is not None else []
+        if unused:
+            raise ValueError(
+                f"study.sweep_arm: a sweep compares nothing and ends at its α × λ selection, but "
+                f"{', '.join(unused)} {'is' if len(unused) == 1 else 'are'} set: leave them empty "
+                "(gate false)"
+            )
+
     @model_validator(mode="after")
     def _design(self) -> StudySettings:
         self._grids_and_arms()
         self._given_values()
+        if self.sweep_arm is not None:
+            self._sweep()
+            return self
         if not self.needs_gamma:
             if self.gate:
                 raise ValueError(
@@ -237,7 +266,7 @@ class StudySettings(LambdaGrid):
         return self
 
 
-class StudyConfig(PipelineConfig):
+class StudyConfig(RecipeSettings):
     study: StudySettings
 
     @model_validator(mode="after")
@@ -255,6 +284,8 @@ class StudyConfig(PipelineConfig):
                 "reads the held-out loss at half and three quarters of the run"
             )
         check_variants(self.study.variants, self.model_dump(mode="json"))
+        if self.study.sweep_arm is not None:
+            return self  # a sweep compares no seed or draw: its tuning seeds may be any
         compared = set(self.seeds) | (set(self.study.draws) if self.study.needs_gamma else set())
         clash = sorted(set(self.study.tuning_seeds) & compared)
         if clash:

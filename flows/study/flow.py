@@ -19,12 +19,14 @@ from capvector.tasks.runtime.workspace import workspace_for
 
 @flow(name="study", flow_run_name=run_name, log_prints=True, task_runner=step_runner(), persist_result=False)
 def study_flow(config: dict[str, Any], home: str) -> dict[str, Any]:
-    """Run (or resume from cache) a study; returns the report's id and the selections' ids."""
+    """Run (or resume from cache) a study (or a sweep, capvector.flows.study.recipe.sweep_study); returns
+    the report's id (a sweep's selection's) and the selections' ids."""
     cfg = StudyConfig.model_validate(config)
     workspace = workspace_for(home)
     before_gate, after_gate = study_steps(cfg)
     steps = StepRunner(home, before_gate, f"study {cfg.name}", after_gate=after_gate)
     with recorded_run(workspace, "study", {"config": config, "home": home}):
         result = plan_study(cfg, steps)
-        publish_markdown(f"{cfg.name}-study", result["markdown"], f"capvector study {cfg.name}")
+        what = "study" if cfg.study.sweep_arm is None else "sweep"  # a sweep's Markdown: its α × λ table
+        publish_markdown(f"{cfg.name}-{what}", result["markdown"], f"capvector {what} {cfg.name}")
     return result

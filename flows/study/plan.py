@@ -21,6 +21,10 @@ success-vs-steps curve), and every value is chosen on validation goals at that s
 selection as an input (lineage: `selected_by`). Selection runs use `study.tuning_seed`, never a
 compared run's seed. The flow blocks only where a choice (or the gate) configures the next runs;
 everything else is submitted at once (capvector.flows.runtime.step_submission).
+
+A sweep (`study.sweep_arm`, `capvector sweep`: capvector.flows.study.recipe.sweep_study) is this plan up to
+its α × λ choice and no further: demos, θ_pt, its one draw's θ_ft, θ_ao and γ (extraction values given),
+the arm's α × λ cells at the tuning seeds and the `select` step, whose id is its result.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from capvector.flows.recipe.config import ARMS, lambda_label
 from capvector.flows.recipe.plan import submit_arm
 from capvector.flows.runtime.step_submission import CacheProbe, PlannedStep, PlanRecorder, StepRunner, resolve
 from capvector.flows.study.config import GATE_ARMS, SHARED_ARMS, StudyConfig
-from capvector.flows.study.report import load_study_report, study_markdown
+from capvector.flows.study.report import load_study_report, study_markdown, sweep_markdown
 from capvector.tasks.runtime.progress import emit
 from capvector.tasks.runtime.workspace import Workspace, workspace_for
 from capvector.tasks.steps.data import collect_demos_task
@@ -405,18 +409,21 @@ def _held_out_losses(study: _Study, draws: dict[int, dict[str, Any]], heldout: A
 
 def _foundations(study: _Study) -> dict[str, Any]:
     """Demonstrations and θ_pt: what every run starts from (`data`, `pretrained`); D_ext's demos and θ_pt's
-    D_ext validation only where an arm needs γ."""
+    D_ext validation only where an arm needs γ; the held-out demos and that validation, which only the
+    analysis reads, not in a sweep."""
     cfg, submit, gamma = study.cfg, study.submit, study.cfg.study.needs_gamma
+    analysed = cfg.study.sweep_arm is None
     splits = ("pretrain", "extraction", "downstream") if gamma else ("pretrain", "downstream")
     data = {s: submit(collect_demos_task, f"demos {s}", {}, cfg.demo_config(s)) for s in splits}
-    if gamma:
+    if gamma and analysed:
         held_out = cfg.heldout_demo_config()
         data["heldout"] = submit(collect_demos_task, "demos extraction (held out)", {}, held_out)
-    study.heldout_downstream = submit(
-        collect_demos_task, "demos downstream (held out)", {}, cfg.downstream_heldout_demo_config()
-    )
+    if analysed:
+        study.heldout_downstream = submit(
+            collect_demos_task, "demos downstream (held out)", {}, cfg.downstream_heldout_demo_config()
+        )
     pretrained = submit(train_task, "pretrain θ_pt", {"data": data["pretrain"]}, cfg.pretrain_step())
-    if gamma:
+    if gamma and analysed:
         validation = submit(
             evaluate_task, "validate θ_pt on D_ext", {"checkpoint": pretrained}, study.validation_ext
         )
@@ -541,9 +548,13 @@ def _gate_arms(study: _Study, units: dict[int, dict[str, Any]], runs: dict) -> N
 
 
 def _tuning_vectors(study: _Study, base: dict[str, Any], extraction: dict[str, Any]) -> dict[int, Any]:
-    """Tuning seed -> the γ its α × λ runs use: the mean γ̄_tune of `study.tuning_vector_draws` (one for
-    every tuning seed), else each tuning seed's own θ_ao − θ_ft from the extraction grid."""
+    """Tuning seed -> the γ its α × λ runs use: a sweep's one draw's γ (`study.units`), the mean γ̄_tune
+    of `study.tuning_vector_draws` (one for every tuning seed), else each tuning seed's own θ_ao − θ_ft
+    from the extraction grid."""
     cfg, s, submit, tunes = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seeds
+    if s.sweep_arm is not None:
+        (stage,) = study.units.values()
+        return dict.fromkeys(tunes, stage["vector"])
     if s.tuning_vector_draws:
         draws = {d: _draw(study, d, base, extraction, compared=False) for d in s.tuning_vector_draws}
         inputs = {f"vector {i}": draws[d]["vector"] for i, d in enumerate(s.tuning_vector_draws)}
@@ -565,34 +576,38 @@ def _tuning_vectors(study: _Study, base: dict[str, Any], extraction: dict[str, A
 
 
 def _tune_alpha_lambda(study: _Study, base: dict[str, Any], extraction: dict[str, Any]) -> str:
-    """CapVector's α × λ, chosen on validation goals from runs at the tuning seeds; the selection's id."""
+    """CapVector's α × λ (a sweep's: its arm's), chosen on validation goals from runs at the tuning seeds;
+    the selection's id. An arm without the orthogonal loss has one λ cell per α: none."""
     cfg, s, submit, tunes = study.cfg, study.cfg.study, study.submit, study.cfg.study.tuning_seeds
+    arm = s.sweep_arm or "capvector"
+    lambdas = s.lambda_cells(cfg.orthogonal) if ARMS[arm].orthogonal else [{}]
     vectors = _tuning_vectors(study, base, extraction)
     grid_cells = []
     for alpha in s.alphas:
         label, merge = f"tune merge θ_meta α={alpha}", cfg.merge_config(alpha)
-        if s.tuning_vector_draws:  # one γ̄_tune for every tuning seed: one θ_meta per α
+        if s.tuning_vector_draws or s.sweep_arm:  # one γ for every tuning seed: one θ_meta per α
             inputs = {"base": base["pretrained"], "vector": vectors[tunes[0]]}
             merged = dict.fromkeys(tunes, submit(merge_task, label, inputs, merge))
         else:
             pairs = {t: {"base": base["pretrained"], "vector": vectors[t]} for t in tunes}
             merged = {t: submit(merge_task, _seeded(label, t, tunes), pairs[t], merge) for t in tunes}
-        for lam in s.lambda_cells(cfg.orthogonal):
-            what = f"capvector α={alpha} {lambda_label(lam)}"
+        for lam in lambdas:
+            what = f"{arm} α={alpha} {lambda_label(lam)}"
             evaluations = []
             for t in tunes:
                 run = submit_arm(
                     study.steps,
                     {**base, "vector": vectors[t]},
-                    "capvector",
+                    arm,
                     t,
-                    cfg.study_downstream("capvector", t, lam),
+                    cfg.study_downstream(arm, t, lam or None),
                     label=_seeded(f"tune {what}", t, tunes),
                     meta=merged[t],
                 )
                 evaluations += study.validate_curve(run, _seeded(what, t, tunes))
             grid_cells.append(({"alpha": alpha, **lam}, evaluations))
-    return study.select("α and λ", grid_cells, {"seeds": tunes, "endpoint": cfg.curve_budgets})
+    context = {"seeds": tunes, "endpoint": cfg.curve_budgets} | ({"arm": arm} if s.sweep_arm else {})
+    return study.select("α and λ", grid_cells, context)
 
 
 def _merges(study: _Study, d: int, stage: dict, base: dict[str, Any], selection: str, alpha: float) -> None:
@@ -656,10 +671,26 @@ def _shared_study(study: _Study, base: dict[str, Any], grids: dict, aux_grid: li
     return {"report": report, "selections": _selections(study)}
 
 
+def _sweep(study: _Study, base: dict[str, Any]) -> dict[str, Any]:
+    """A sweep (`study.sweep_arm`): its one draw's θ_ft, θ_ao and γ with the given extraction values, then
+    the arm's α × λ, chosen on validation goals (`_tune_alpha_lambda`); it ends at that selection."""
+    s = study.cfg.study
+    (d,) = s.draws
+    (lr,), (weight,) = s.extraction_lrs, s.extraction_aux_weights
+    given = {"lr": lr, "aux_weight": weight, "lr_selection": Given(lr=lr)}
+    given["weight_selection"] = Given(aux_weight=weight)
+    study.units = {d: _draw(study, d, base, given, compared=False)}
+    selection = _tune_alpha_lambda(study, base, given)
+    return {"sweep": selection, "selections": _selections(study)}
+
+
 def _run_study(study: _Study) -> dict[str, Any]:
-    """The study in order: the gate's arms, the gate, then CapVector's α × λ and arms (see the module)."""
+    """The study in order: the gate's arms, the gate, then CapVector's α × λ and arms (see the module);
+    a sweep, its α × λ alone."""
     cfg, s = study.cfg, study.cfg.study
     base = study.base = _foundations(study)
+    if s.sweep_arm is not None:
+        return _sweep(study, base)
     runs = study.runs  # (arm, draw, seed) -> checkpoint
     grids = _lr_grids(study, base)
     for seed in cfg.seeds if "sft" not in grids else ():  # without a grid, at once
@@ -741,11 +772,14 @@ def _design(cfg: StudyConfig, chosen_values: dict[str, float]) -> dict[str, Any]
 
 
 def plan_study(cfg: StudyConfig, steps: StepRunner) -> dict[str, Any]:
-    """Submit the study's steps to `steps` (a flow's runner, or a CacheProbe): the report's and the
-    selections' ids, and the report in Markdown."""
+    """Submit the study's steps to `steps` (a flow's runner, or a CacheProbe): the report's (a sweep's:
+    its selection's, `sweep`) and the selections' ids, and the report (the sweep's table) in Markdown."""
     workspace = workspace_for(steps.home)
     study = _Study(cfg, steps, workspace)
     study.gate_more = study_steps(cfg)[1]
     ids = _run_study(study)
-    markdown = study_markdown(workspace, load_study_report(workspace, ids["report"]))
+    if "sweep" in ids:  # a sweep's result is its selection
+        markdown = sweep_markdown(workspace.api.store.open_json(ids["sweep"]))
+    else:
+        markdown = study_markdown(workspace, load_study_report(workspace, ids["report"]))
     return {**ids, "products": study.products(), "markdown": markdown}

@@ -8,6 +8,12 @@ are the preset's: sft, aux, capvector and meta_sft as study arms, the adapter fo
 (`capvector_lora`, ...) as study arms from θ_meta, and the adapter forms of SFT (`sft_lora`, ...) as
 study variants at `adapter_lr`. What one draw and one seed cannot estimate (the draw component, an
 interval over seeds), the study's report says it did not measure.
+
+The preset's α × λ sweep (`capvector sweep`) is a study too (`sweep_study`): the same γ (the one draw,
+the preset's extraction values given), then the `sweep` grid's cells of `sweep.arm` at the tuning seed
+seeds[0], chosen on validation goals by the study's own α × λ selection; it ends there (study.sweep_arm):
+which α and λ is its whole question, so no arm is compared or tested. On a home where `capvector run`
+ran, its demos, θ_pt, θ_ft, θ_ao and γ are the run's (same steps, cached).
 """
 
 from __future__ import annotations
@@ -41,6 +47,28 @@ def recipe_study(cfg: PipelineConfig) -> StudyConfig:
         "budgets": [],
         "arms": [arm for arm in cfg.arms if arm in STUDY_ARMS],
         "variants": variants,
+        "gate": False,
+    }
+    return StudyConfig.model_validate(settings)
+
+
+def sweep_study(cfg: PipelineConfig) -> StudyConfig:
+    """The study that runs `cfg`'s α × λ sweep (see the module): the grid `sweep.alphas` × the sweep's λ
+    (both λ lists empty: the `orthogonal` section's one λ; none where the arm has no orthogonal loss)."""
+    settings = cfg.model_dump(mode="json", exclude={"alpha", "sweep", "arms"})
+    sweep = cfg.sweep
+    orthogonal = ARMS[sweep.arm].orthogonal
+    settings["study"] = {
+        "sweep_arm": sweep.arm,
+        "draws": [cfg.extraction.seed],
+        "tuning_seeds": [cfg.seeds[0]],
+        "extraction_lrs": [cfg.extraction.lr],
+        "extraction_aux_weights": [cfg.aux.weight],
+        "alphas": list(sweep.alphas),
+        "lambdas_relative": list(sweep.lambdas_relative) if orthogonal else [],
+        "lambdas_absolute": list(sweep.lambdas_absolute) if orthogonal else [],
+        "budgets": [],
+        "arms": [],
         "gate": False,
     }
     return StudyConfig.model_validate(settings)

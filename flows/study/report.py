@@ -1,4 +1,5 @@
-"""A study's report in Markdown: the headline comparisons with their CIs, the preconditions, the design.
+"""A study's report in Markdown: the headline comparisons with their CIs, the preconditions, the design;
+a sweep's, its α × λ table.
 
 Rendered from the `study` artifact (capvector.tasks.steps.study_analysis), plus the time per training step of
 each arm, read from its checkpoints' records (timings are never part of the analysed document).
@@ -8,8 +9,10 @@ from __future__ import annotations
 
 import math
 import statistics
+from typing import Any
 
 from capvector.artifacts.scores import read_episodes
+from capvector.flows.recipe.config import lambda_label
 from capvector.flows.study.forms_report import forms_section
 from capvector.stats.paired_differences import ENDPOINT, Comparison, CurvePoint
 from capvector.tasks.runtime.workspace import Workspace
@@ -32,6 +35,16 @@ NAMES = {
     "sft_from_ft": "SFT from θ_ft",
 }
 VERDICT = {True: "holds", False: "fails", None: "not shown (CI includes 0)"}
+
+
+def sweep_markdown(doc: dict[str, Any]) -> str:
+    """An α × λ sweep's selection (`capvector sweep`; also one the sweep flow recorded before a sweep was a
+    study) as a table: each cell's α, λ and validation success, the chosen one marked."""
+    lines = ["| α | λ | validation success |", "|---|---|---|"]
+    for r in doc["grid"]:
+        mark = " **(best)**" if r == doc["best"] else ""
+        lines.append(f"| {r['alpha']} | {lambda_label(r)} | {100 * r['validation_success']:.1f}%{mark} |")
+    return "\n".join(lines) + "\n"
 
 
 def load_study_report(workspace: Workspace, report_id: str) -> StudyReport:
