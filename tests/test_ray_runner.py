@@ -30,6 +30,8 @@ from loopback_cluster import (
     stop,
 )
 
+from capvector.flows.cli.process_tree import descendant_pids
+
 pytest.importorskip("prefect_ray")
 
 STARTED = "This command will now block forever"  # `ray start --block`: the node is up
@@ -86,7 +88,7 @@ def ray_cluster(s3_endpoint) -> RayCluster:
         )  # fmt: skip
     finally:
         for proc, _ in reversed(procs):
-            workers = _descendants(proc.pid)  # a worker has a process group of its own
+            workers = descendant_pids(proc.pid)  # a worker has a process group of its own
             stop(proc, grace_s=5)
             for pid in workers:
                 _kill(pid)
@@ -130,22 +132,6 @@ def _worker_output(logs: Path) -> str:
     return "\n".join(f.read_text(errors="replace") for f in _err_logs(logs))
 
 
-def _descendants(pid: int) -> list[int]:
-    children: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # gone meanwhile
-            continue
-        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
-    found, todo = [], [pid]
-    while todo:
-        kids = children.get(todo.pop(), [])
-        found += kids
-        todo += kids
-    return found
-
-
 def _kill(pid: int) -> None:
     try:
         os.kill(pid, signal.SIGKILL)
@@ -178,7 +164,7 @@ def test_smoke_run_with_an_s3_home_on_the_cluster_survives_a_killed_worker(ray_c
 def _kill_a_training_step(cluster: RayCluster, proc: subprocess.Popen) -> int | None:
     """The pid of the worker killed while it ran a training step, or None if the run ended first."""
     while proc.poll() is None:
-        for pid in (pid for node in cluster.nodes for pid in _descendants(node.pid)):
+        for pid in (pid for node in cluster.nodes for pid in descendant_pids(node.pid)):
             if _title(pid) == "ray::train":
                 _kill(pid)
                 return pid
