@@ -8,7 +8,8 @@ against an earlier revision on the same machine at the same time.
 
 Cold: a fresh home and a fresh Prefect home. Warm: the same command again, every step a cache hit
 (median of --warm-reps). While each run goes, its process tree is sampled every 0.1 s: the Prefect
-API servers (uvicorn serving prefect.server) and the step workers it ever had are counted.
+API servers (uvicorn serving prefect.server) and the step workers it ever had are counted, and the CPU
+time of every process in it is summed (wall time depends on what else the machine runs; CPU much less).
 Prefect's fixed overhead: a plain process that imports our flows and runs one empty flow on Prefect's
 own embedded server, against one that only imports them.
 """
@@ -43,46 +44,71 @@ empty()
 IMPORT_ONLY = "import capvector.flows.study.flow"
 
 
+def _stat(pid: int) -> list[str] | None:
+    """The fields of /proc/<pid>/stat after the command name (state, ppid, …, utime at 11, stime at 12)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 def _children() -> dict[int, list[int]]:
     children: dict[int, list[int]] = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+        fields = _stat(int(stat.parent.name))
+        if fields:
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
     return children
 
 
-def _descendants(root: int) -> dict[int, str]:
+def _descendants(root: int) -> dict[int, tuple[int, str]]:
+    """{pid: (parent pid, command line)} of every live process below `root`."""
     children, found, frontier = _children(), {}, [root]
     while frontier:
-        for pid in children.get(frontier.pop(), []):
+        parent = frontier.pop()
+        for pid in children.get(parent, []):
             try:
-                found[pid] = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+                found[pid] = (parent, Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode())
             except OSError:
                 continue
             frontier.append(pid)
     return found
 
 
+def _is_pool_worker(parent: int, cmdline: str, tree: dict[int, tuple[int, str]]) -> bool:
+    """A spawned worker runs spawn_main (the resource tracker does not); a forked one is a child of the
+    fork server and shows the server's command line."""
+    if "spawn_main" in cmdline:
+        return True
+    server = "multiprocessing.forkserver"
+    return server in cmdline and server in tree.get(parent, (0, ""))[1]
+
+
 def timed(cmd: list[str], env: dict[str, str], cwd: Path = REPO) -> dict[str, float]:
-    """Wall time of one command, and the servers and workers seen in its process tree."""
+    """Wall time of one command, the CPU time of its whole process tree (user + system, each process's
+    last reading, sampled every 0.1 s), and the servers and workers seen in that tree."""
     servers: set[int] = set()
     workers: set[int] = set()
+    cpu: dict[int, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
     start = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     while proc.poll() is None:
-        for pid, cmdline in _descendants(proc.pid).items():
+        tree = _descendants(proc.pid)
+        for pid in [proc.pid, *tree]:
+            fields = _stat(pid)
+            if fields:
+                cpu[pid] = max(cpu.get(pid, 0.0), (int(fields[11]) + int(fields[12])) / tick)
+        for pid, (parent, cmdline) in tree.items():
             if "uvicorn" in cmdline and "prefect.server" in cmdline:
                 servers.add(pid)
-            elif "spawn_main" in cmdline:  # pool workers (not the resource tracker)
+            elif _is_pool_worker(parent, cmdline, tree):
                 workers.add(pid)
         time.sleep(0.1)
     wall = time.perf_counter() - start
     if proc.returncode:
         raise SystemExit(f"{' '.join(cmd)} failed with code {proc.returncode}")
-    return {"wall_s": wall, "servers": len(servers), "workers": len(workers)}
+    return {"wall_s": wall, "cpu_s": sum(cpu.values()), "servers": len(servers), "workers": len(workers)}
 
 
 def verification_bound_s(home: Path) -> tuple[float, int]:
@@ -140,6 +166,7 @@ def main() -> None:
             {
                 "preset": preset,
                 "cold_s": cold["wall_s"],
+                "cold_cpu_s": cold["cpu_s"],
                 "warm_s": warm,
                 "warm_runs_s": [w["wall_s"] for w in warms],
                 "warm_over_cold": warm / cold["wall_s"],
@@ -176,23 +203,25 @@ def main() -> None:
         f"warm is the median of {args.warm_reps} runs. Servers and workers: distinct Prefect API server",
         "and pool-worker processes seen in the run's process tree.",
         "",
-        "| preset | cold s | warm s (all cache hits) | warm / cold | servers cold / warm "
+        "| preset | cold s | cold CPU s | warm s (all cache hits) | warm / cold | servers cold / warm "
         "| workers cold / warm |",
-        "|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['preset']} | {r['cold_s']:.1f} | {r['warm_s']:.1f} | **{r['warm_over_cold']:.2f}** | "
+            f"| {r['preset']} | {r['cold_s']:.1f} | {r['cold_cpu_s']:.1f} | {r['warm_s']:.1f} | "
+            f"**{r['warm_over_cold']:.2f}** | "
             f"{r['servers_cold']} / {r['servers_warm']} | {r['workers_cold']} / {r['workers_warm']} |"
         )
     for r in rows:
         if "before" in r:
             b = r["before"]
             lines.append(
-                f"\nThe same runs with the code of `{b['rev']}`, in this session: cold {b['cold_s']:.1f} s, "
-                f"warm {b['warm_s']:.1f} s (warm / cold {b['warm_s'] / b['cold_s']:.2f}), servers cold / "
-                f"warm {b['servers_cold']} / {b['servers_warm']}; the warm run is "
-                f"**{r['warm_speedup']:.2f}× faster** now."
+                f"\nThe same runs with the code of `{b['rev']}`, in this session: cold {b['cold_s']:.1f} s "
+                f"and {b['cold_cpu_s']:.1f} s of CPU ({b['workers_cold']} workers), warm {b['warm_s']:.1f} s "
+                f"(warm / cold {b['warm_s'] / b['cold_s']:.2f}), servers cold / warm {b['servers_cold']} / "
+                f"{b['servers_warm']}. Now the cold run takes **{r['cold_cpu_s'] / b['cold_cpu_s']:.2f}×** "
+                f"the CPU and the warm run is **{r['warm_speedup']:.2f}× faster**."
             )
     for r in rows:
         lines.append(
@@ -237,6 +266,8 @@ def _with_before(
     before = {
         "rev": rev,
         "cold_s": cold_before["wall_s"],
+        "cold_cpu_s": cold_before["cpu_s"],
+        "workers_cold": cold_before["workers"],
         "warm_s": statistics.median(w["wall_s"] for w in warms_before),
         "warm_runs_s": [w["wall_s"] for w in warms_before],
         "servers_cold": cold_before["servers"],

@@ -2,7 +2,8 @@
 workers die with the CLI, and nothing of a dead run commits afterwards.
 
 `kill -9` gives the CLI no chance to clean up, so each child watches its parent: it asks the kernel
-for a signal when the CLI dies (Linux) and the workers also poll their parent.
+for a signal when its parent dies (Linux) and the workers also poll their parent. A worker's parent is
+the CLI's fork server, which exits when the CLI does.
 """
 
 import os
@@ -95,7 +96,9 @@ def test_one_server_per_run_and_kill_9_leaves_no_process_and_commits_nothing(tmp
     try:
 
         def workers() -> dict[int, tuple[str, str]]:
-            return {p: v for p, v in _tree(proc.pid).items() if "multiprocessing.spawn" in v[1]}
+            """The step workers: forked by the run's fork server, the CLI's child (its command line too)."""
+            forked = {p: v for p, v in _tree(proc.pid).items() if "multiprocessing.forkserver" in v[1]}
+            return {p: v for p, v in forked.items() if (_stat(p) or ["", ""])[1] != str(proc.pid)}
 
         up = _wait_until(lambda: proc.poll() is not None or len(workers()) >= 2, 300)
         assert proc.poll() is None, "the run ended before its workers were up"

@@ -1,4 +1,5 @@
-"""The process pool the flows run their steps on: Prefect's, minus a head-of-line block.
+"""The process pool the flows run their steps on: Prefect's, minus a head-of-line block, forked from a
+preloaded fork server.
 
 Prefect's `ProcessPoolTaskRunner` waits for a submitted step's input futures on a thread pool as large
 as its process pool, in submission order. A flow that submits two steps waiting for inputs before a
@@ -6,28 +7,63 @@ step whose inputs are ready therefore leaves the ready one queued, with process 
 input arrives. In a study this serialized the tuning runs of θ_ao's auxiliary weights: the validation
 and held-out-loss steps of the first run held both waiting threads, so the second run started only
 when the first had finished. The same class of hang made Prefect give `ThreadPoolTaskRunner` an
-unbounded pool (PrefectHQ/prefect#14194).
+unbounded pool (PrefectHQ/prefect#14194). Waiting costs a thread nothing, so `StepPool` gives each
+waiting step its own (up to `WAITING_STEPS`); the process pool still runs at most `max_workers` steps
+at once.
 
-Waiting costs a thread nothing, so `StepPool` gives each waiting step its own (up to
-`WAITING_STEPS`); the process pool still runs at most `max_workers` steps at once.
+Prefect spawns each worker, and each then imports torch, torch._dynamo (the first optimizer does),
+Meta-World, Prefect and the step modules: about 4 s of CPU per worker, more than a tiny step's work.
+`StepPool` starts its workers from a fork server instead (multiprocessing's `forkserver`): one clean
+process, started by the first worker's request, that imports those modules once (`PRELOAD` and every
+module of capvector.tasks.steps) and forks each worker from that state. It is single-threaded and has
+initialised neither CUDA, OpenMP nor a GL context, which is what makes forking it safe where forking
+the CLI (threads, an event loop) is not. benchmarks/bench_step_pool.py measures both start methods.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+import multiprocessing
+import pkgutil
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from multiprocessing.context import BaseContext
 from typing import Self
 
-from prefect.task_runners import ProcessPoolTaskRunner
+from prefect.task_runners import ProcessPoolTaskRunner, _initialize_process_pool_worker
 
+import capvector.tasks.steps
 from capvector.tasks.runtime.prefect_task import bind_worker_to_parent
 
 WAITING_STEPS = 512
 """Steps that may wait for their inputs at once (a large study submits a few hundred)."""
 
+PRELOAD = ("torch._dynamo", "metaworld", "prefect.task_engine")
+"""Imported by the fork server beside the step modules: what every worker imports sooner or later."""
+
+
+def preloaded_fork_server() -> BaseContext:
+    """multiprocessing's `forkserver` context, its server told to import the step modules first. The
+    list applies when the server starts (this process's first forkserver worker) and stays for the
+    process's life, as the server does; a module that fails to import there is imported by the worker
+    that needs it, and fails there with its own error."""
+    steps = [f"capvector.tasks.steps.{m.name}" for m in pkgutil.iter_modules(capvector.tasks.steps.__path__)]
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([*PRELOAD, *steps])
+    return context
+
 
 class StepPool(ProcessPoolTaskRunner):
     def __enter__(self) -> Self:
         super().__enter__()
+        # Prefect's executor has started no worker yet (they start on the first submit): replace it by
+        # the same executor on the fork server, with Prefect's worker set-up (its log and event
+        # forwarding) and our initializer as it passes them.
+        self._executor.shutdown(wait=False)
+        self._executor = ProcessPoolExecutor(
+            max_workers=self._max_workers,
+            mp_context=preloaded_fork_server(),
+            initializer=_initialize_process_pool_worker,
+            initargs=(self._subprocess_message_queue, self._initializer, self._initargs),
+        )
         narrow = getattr(self, "_resolver_executor", None)
         if isinstance(narrow, ThreadPoolExecutor):  # prefect versions that resolve inputs in the parent
             narrow.shutdown(wait=False)

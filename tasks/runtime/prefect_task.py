@@ -7,12 +7,13 @@ any record in `$PREFECT_HOME/storage` under a key a step looks up would be unpic
 that its content cache answered returns `Completed(name="Cached")`, which is what Prefect's own cache hits
 look like in the UI.
 
-**Processes.** A `capvector run` starts step workers (Prefect's process pool) and one Prefect API
-server (flows/runtime/prefect_server.py) that the CLI and the workers share. None of them may outlive the CLI,
-even after `kill -9`, and nothing of a dead run may commit:
-- a worker asks the kernel for SIGKILL when the CLI dies (Linux, `PR_SET_PDEATHSIG`), so it cannot
-  run a line after that; a watchdog thread (any OS) exits it when its parent changes, and a step does
-  not start in a worker whose parent is gone (`RunAbandoned`);
+**Processes.** A `capvector run` starts step workers (a process pool forked from a preloaded fork server,
+flows/runtime/step_pool.py) and one Prefect API server (flows/runtime/prefect_server.py) that the CLI and the
+workers share. None of them may outlive the CLI, even after `kill -9`, and nothing of a dead run may commit:
+- a worker asks the kernel for SIGKILL when the process that started it dies (Linux, `PR_SET_PDEATHSIG`):
+  the CLI itself, or the CLI's fork server, which exits the moment the CLI is gone. So it cannot run a line
+  after that; a watchdog thread (any OS) exits it when its parent changes, and a step does not start in a
+  worker whose parent is gone (`RunAbandoned`);
 - the server gets SIGTERM when the CLI dies (flows/runtime/prefect_server.py).
 """
 
@@ -34,7 +35,8 @@ from capvector.tasks.runtime.caching import NotCached, probing, step_label, step
 WATCHDOG_PERIOD_S = 0.25
 PR_SET_PDEATHSIG = 1
 
-# The pid of the CLI this process works for, once it is a bound step worker.
+# The pid of the process that started this one (the CLI, or the CLI's fork server), once it is a bound
+# step worker.
 _bound_parent: int | None = None
 
 
@@ -148,12 +150,15 @@ def pipeline_task(
 
 # ---------------------------------------------------------------------------- step workers
 def bind_worker_to_parent() -> None:
-    """Initializer of each process-pool worker: die with the process that spawned it.
+    """Initializer of each process-pool worker: die with the process that started it.
 
-    Runs first thing in the worker. The parent is multiprocessing's record of it (not getppid(),
-    which names init already if the CLI died before this line). The kernel sends the parent-death
-    signal when the *thread* that spawned the worker ends; Prefect's process pool spawns workers
-    from its resolver threads, which live until the pool has shut its workers down."""
+    Runs first thing in the worker. multiprocessing's record of the parent is the CLI, whichever start
+    method; the process that started the worker (getppid()) is the CLI under spawn and the CLI's fork
+    server under forkserver, a child of the CLI that exits when the CLI does. The worker is bound to that
+    starter, once it is known to be the CLI or its child: getppid() names init (or a subreaper) already if
+    the starter died before this line. The kernel sends the parent-death signal when the *thread* that
+    started the worker ends: a fork server forks from its only thread; under spawn, Prefect's process
+    pool spawns workers from its resolver threads, which live until the pool has shut its workers down."""
     import multiprocessing
 
     global _bound_parent
@@ -162,12 +167,25 @@ def bind_worker_to_parent() -> None:
     parent = multiprocessing.parent_process()
     if parent is None or parent.pid is None:
         return
+    starter = os.getppid()
     _set_parent_death_signal(signal.SIGKILL)
-    if os.getppid() != parent.pid:  # it died before the signal was armed
+    if os.getppid() != starter or not _started_for(starter, parent.pid):  # gone before the signal was armed
         os._exit(1)
-    _bound_parent = parent.pid
-    _start_watchdog(parent.pid)
+    _bound_parent = starter
+    _start_watchdog(starter)
     quiet_failed_run_logs()
+
+
+def _started_for(starter: int, cli: int) -> bool:
+    """Whether `starter` is the CLI or a child of it (its fork server). Where /proc is missing, the
+    starter is taken on trust (the watchdog still ends the worker when it goes)."""
+    if starter == cli:
+        return True
+    try:
+        stat = open(f"/proc/{starter}/stat").read()
+    except OSError:
+        return not sys.platform.startswith("linux")
+    return int(stat[stat.rindex(")") + 2 :].split()[1]) == cli
 
 
 # ---------------------------------------------------------------------------- failure logs
@@ -204,7 +222,9 @@ def refuse_if_abandoned(step: str) -> None:
     """In a bound worker whose CLI is gone: raise instead of starting `step` (where no parent-death
     signal exists, the watchdog ends such a worker within WATCHDOG_PERIOD_S)."""
     if _bound_parent is not None and os.getppid() != _bound_parent:
-        raise RunAbandoned(f"step {step!r} not run: its parent process {_bound_parent} (the CLI) is gone")
+        raise RunAbandoned(
+            f"step {step!r} not run: its parent process {_bound_parent} (the CLI or its fork server) is gone"
+        )
 
 
 def _set_parent_death_signal(signum: int) -> None:
