@@ -1,6 +1,8 @@
 """Shared test settings: offscreen rendering, no telemetry, a private Prefect home per session."""
 
+import atexit
 import os
+import shutil
 import tempfile
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -11,8 +13,13 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")  # loaded CI machines
 for _name in ("CAPVECTOR_SCRATCH", "CAPVECTOR_CACHE"):  # a developer's own settings must not leak in
     os.environ.pop(_name, None)
-if "CAPVECTOR_TEST_KEEP_PREFECT_HOME" not in os.environ:
+# One per test process, made once although pytest imports this file under two names, and removed when
+# the process ends (each holds a Prefect database: they piled up in /tmp, about 3 MB a process).
+_home_made_here = os.environ.get("CAPVECTOR_TEST_PREFECT_HOME_OF") == str(os.getpid())
+if "CAPVECTOR_TEST_KEEP_PREFECT_HOME" not in os.environ and not _home_made_here:
     os.environ["PREFECT_HOME"] = tempfile.mkdtemp(prefix="capvector-prefect-")
+    os.environ["CAPVECTOR_TEST_PREFECT_HOME_OF"] = str(os.getpid())
+    atexit.register(shutil.rmtree, os.environ["PREFECT_HOME"], ignore_errors=True)
 
 # One Prefect API server per test process (each pytest-xdist worker has its own PREFECT_HOME), which
 # every `capvector` the tests start is told about through PREFECT_API_URL, as a user with a running
@@ -40,7 +47,6 @@ torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 import fcntl  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
-import shutil  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402

@@ -38,6 +38,8 @@ import time
 import urllib.request
 from pathlib import Path
 
+from capvector.durable import write_atomic
+
 START_TIMEOUT_ENV = "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"
 PR_SET_PDEATHSIG = 1
 
@@ -150,12 +152,34 @@ def start_run_server() -> RunServer | None:
 
     Call before anything imports Prefect: Prefect reads PREFECT_API_URL when it is imported."""
     global _server
-    if _server is not None or os.environ.get("PREFECT_API_URL"):
-        return _server
-    _server = RunServer()
-    os.environ["PREFECT_API_URL"] = _server.url
-    atexit.register(_server.stop)  # registered before Prefect's handlers, so it runs after them
+    if _server is None and not os.environ.get("PREFECT_API_URL"):
+        _server = RunServer()
+        os.environ["PREFECT_API_URL"] = _server.url
+        atexit.register(_server.stop)  # registered before Prefect's handlers, so it runs after them
+    _no_ca_bundle_for_plain_http()
     return _server
+
+
+PLAIN_HTTP_CA = "capvector-plain-http-ca.pem"
+
+
+def _no_ca_bundle_for_plain_http() -> None:
+    """Every Prefect client builds a verifying TLS context, also for a plain-http API that never uses
+    one, and parses the whole CA bundle for it: about 45 ms of CPU per client, and a step makes two.
+    For an http:// API URL (the run's own server, a local `prefect server start`) Prefect is pointed at
+    a bundle of one certificate instead (PREFECT_API_SSL_CERT_FILE, unless already set), which parses in
+    about 1 ms. An https:// API keeps Prefect's verification as configured."""
+    plain_http = os.environ.get("PREFECT_API_URL", "").startswith("http://")
+    if not plain_http or os.environ.get("PREFECT_API_SSL_CERT_FILE"):
+        return
+    import certifi
+
+    home = Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
+    bundle = home / PLAIN_HTTP_CA
+    if not bundle.exists():
+        first = Path(certifi.where()).read_text().split("-----END CERTIFICATE-----")[0]
+        write_atomic(bundle, first + "-----END CERTIFICATE-----\n")
+    os.environ["PREFECT_API_SSL_CERT_FILE"] = str(bundle)
 
 
 def start_server_now() -> None:
