@@ -14,15 +14,18 @@ at once.
 Prefect spawns each worker, and each then imports torch, torch._dynamo (the first optimizer does),
 Meta-World, Prefect and the step modules: about 4 s of CPU per worker, more than a tiny step's work.
 `StepPool` starts its workers from a fork server instead (multiprocessing's `forkserver`): one clean
-process, started by the first worker's request, that imports those modules once (`PRELOAD` and every
-module of capvector.tasks.steps) and forks each worker from that state. It is single-threaded and has
-initialised neither CUDA, OpenMP nor a GL context, which is what makes forking it safe where forking
-the CLI (threads, an event loop) is not. benchmarks/bench_step_pool.py measures both start methods.
+process, started by the pool's first worker, that imports those modules once (`PRELOAD` and every module of
+capvector.tasks.steps) and forks each worker from that state. It is single-threaded and has initialised
+neither CUDA, OpenMP nor a GL context, which is what makes forking it safe where forking the CLI
+(threads, an event loop) is not. It dies with the process that started it
+(flows/runtime/fork_server_guard.py, its first import), and the workers with it.
+benchmarks/results/pipeline.md has a cold run's CPU with both start methods.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
 import pkgutil
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from multiprocessing.context import BaseContext
@@ -31,23 +34,28 @@ from typing import Self
 from prefect.task_runners import ProcessPoolTaskRunner, _initialize_process_pool_worker
 
 import capvector.tasks.steps
+from capvector.flows.runtime.fork_server_guard import FORK_SERVER_PARENT_ENV
 from capvector.tasks.runtime.prefect_task import bind_worker_to_parent
 
 WAITING_STEPS = 512
 """Steps that may wait for their inputs at once (a large study submits a few hundred)."""
 
-PRELOAD = ("torch._dynamo", "metaworld", "prefect.task_engine")
-"""Imported by the fork server beside the step modules: what every worker imports sooner or later."""
+PRELOAD = ("capvector.flows.runtime.fork_server_guard", "torch._dynamo", "metaworld", "prefect.task_engine")
+"""Imported by the fork server, in this order, before the step modules: the guard that binds it to its
+starter, then what every worker imports sooner or later."""
 
 
 def preloaded_fork_server() -> BaseContext:
-    """multiprocessing's `forkserver` context, its server told to import the step modules first. The
-    list applies when the server starts (this process's first forkserver worker) and stays for the
-    process's life, as the server does; a module that fails to import there is imported by the worker
-    that needs it, and fails there with its own error."""
+    """multiprocessing's `forkserver` context, its server (started by the pool's first worker, unless one
+    this process started is still up) told to import the step modules first; a module that fails to
+    import there is imported by the worker that needs it, and fails there with its own error. Not
+    started here: Prefect enters the task runner again inside each worker, which must start nothing.
+    The server's parent-death signal is bound to the thread that starts it, one of the pool's
+    input-waiting threads, which end after the pool's workers: the next pool starts a new server."""
     steps = [f"capvector.tasks.steps.{m.name}" for m in pkgutil.iter_modules(capvector.tasks.steps.__path__)]
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*PRELOAD, *steps])
+    os.environ[FORK_SERVER_PARENT_ENV] = str(os.getpid())
     return context
 
 
