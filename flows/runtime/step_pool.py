@@ -14,7 +14,7 @@ at once.
 Prefect spawns each worker, and each then imports torch, torch._dynamo (the first optimizer does),
 Meta-World, Prefect and the step modules: about 4 s of CPU per worker, more than a tiny step's work.
 `StepPool` starts its workers from a fork server instead (multiprocessing's `forkserver`): one clean
-process, started by the pool's first worker, that imports those modules once (`PRELOAD` and every module of
+process, started with the first pool, that imports those modules once (`PRELOAD` and every module of
 capvector.tasks.steps) and forks each worker from that state. It is single-threaded and has initialised
 neither CUDA, OpenMP nor a GL context, which is what makes forking it safe where forking the CLI
 (threads, an event loop) is not. It dies with the process that started it
@@ -27,7 +27,9 @@ from __future__ import annotations
 import multiprocessing
 import os
 import pkgutil
+import threading
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from multiprocessing import forkserver
 from multiprocessing.context import BaseContext
 from typing import Self
 
@@ -46,16 +48,20 @@ starter, then what every worker imports sooner or later."""
 
 
 def preloaded_fork_server() -> BaseContext:
-    """multiprocessing's `forkserver` context, its server (started by the pool's first worker, unless one
-    this process started is still up) told to import the step modules first; a module that fails to
-    import there is imported by the worker that needs it, and fails there with its own error. Not
-    started here: Prefect enters the task runner again inside each worker, which must start nothing.
-    The server's parent-death signal is bound to the thread that starts it, one of the pool's
-    input-waiting threads, which end after the pool's workers: the next pool starts a new server."""
+    """multiprocessing's `forkserver` context, its server told to import the step modules first (a module
+    that fails to import there is imported by the worker that needs it, and fails there with its own
+    error). The server's parent-death signal is bound to the thread that starts it, so it is started
+    here when this is the main thread (a flow's, in the CLI): it then lives as long as the process, for
+    every pool. Elsewhere it starts with the pool's first worker, from one of the pool's input-waiting
+    threads, and dies when they end, after the pool's workers. Prefect enters the task runner again
+    inside each step worker, which starts nothing."""
     steps = [f"capvector.tasks.steps.{m.name}" for m in pkgutil.iter_modules(capvector.tasks.steps.__path__)]
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*PRELOAD, *steps])
-    os.environ[FORK_SERVER_PARENT_ENV] = str(os.getpid())
+    if multiprocessing.parent_process() is None:  # not a step worker
+        os.environ[FORK_SERVER_PARENT_ENV] = str(os.getpid())
+        if threading.current_thread() is threading.main_thread():
+            forkserver.ensure_running()
     return context
 
 
