@@ -221,7 +221,7 @@ def main() -> None:
                 f"and {b['cold_cpu_s']:.1f} s of CPU ({b['workers_cold']} workers), warm {b['warm_s']:.1f} s "
                 f"(warm / cold {b['warm_s'] / b['cold_s']:.2f}), servers cold / warm {b['servers_cold']} / "
                 f"{b['servers_warm']}. Now the cold run takes **{r['cold_cpu_s'] / b['cold_cpu_s']:.2f}×** "
-                f"the CPU and the warm run is **{r['warm_speedup']:.2f}× faster**."
+                f"the CPU and the warm run is **{r['warm_speedup']:.2f}×** as fast."
             )
     for r in rows:
         lines.append(
