@@ -101,6 +101,12 @@ class StudySettings(BaseModel):
     n_boot: int = Field(2000, ge=100)
     gate: bool = True
 
+    @property
+    def gate_only(self) -> bool:
+        """A study of the preconditions alone: it ends at its gate, passed or not (issue 39's powered
+        gate, backported from main to this pinned checkout)."""
+        return self.gate and set(self.arms) == set(GATE_ARMS)
+
     @model_validator(mode="after")
     def _design(self) -> StudySettings:
         cells = len(self.alphas) * (len(self.lambda_scales) + len(self.lambdas))
@@ -139,7 +145,7 @@ class StudySettings(BaseModel):
         shared = sorted(set(self.tuning_vector_draws) & set(self.draws))
         if shared:
             raise ValueError(f"study.tuning_vector_draws {shared} are also compared draws")
-        missing = {"sft", "capvector"} - set(self.arms)
+        missing = {"sft", "capvector"} - set(self.arms) - ({"capvector"} if self.gate_only else set())
         if missing:
             raise ValueError(f"study.arms must include {sorted(missing)}: every comparison is against them")
         if self.gate:

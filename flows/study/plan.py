@@ -557,6 +557,9 @@ def _run_study(study: _Study) -> dict[str, Any]:
     _held_out_losses(study, draws, base["data"]["heldout"])
     if s.gate:
         gate_report = study.analyse("gate", _design(cfg, chosen_values))
+        if s.gate_only:
+            emit(f"[study {cfg.name}] gate-only study: it ends at its gate, and its report is the gate's")
+            return {"report": gate_report, "selections": _selections(study)}
         if not study.gate_passed(gate_report):
             emit(f"[study {cfg.name}] gate: preconditions (c), (c′) not shown; CapVector's arms are not run")
             return {"report": gate_report, "selections": _selections(study)}

@@ -213,7 +213,16 @@ def _design(report: StudyReport) -> list[str]:
 
 
 def _gate(report: StudyReport) -> list[str]:
-    """Why CapVector's arms are missing, when the gate stopped the study before them."""
+    """Why CapVector's arms are missing: the gate stopped the study before them, or the study was
+    declared gate-only (its stage is the gate's and its gate passed)."""
+    if report.gate is None and report.design.stage == "gate":
+        return [
+            "",
+            "## Gate: preconditions (c) and (c′) shown",
+            "",
+            "This study was declared gate-only: it tests the preconditions and ends at its gate. "
+            "CapVector's arms (θ_meta, the orthogonal loss, the null vector) are not part of it.",
+        ]
     if report.gate is None:
         return []
     return [
