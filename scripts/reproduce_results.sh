@@ -28,13 +28,19 @@
 #                      at make-run size because the 8-seed design takes longer than a session has left)
 #   control-hard-extraction-flow -> docs/studies/study_control_hard_extraction_flow.md  the 8-seed study on the flow
 #                      backbone (declared after the make-run-size flow study: aux - SFT +9.8 on df 1, (c) +8.5)
+#   conclusive    -> docs/studies/study_conclusive.md     issue 39's declared study (declared_conclusive.md), run from
+#                    its pinned revision d117758 in a temporary worktree (the code its report was made with)
+#   conclusive-gate -> docs/studies/study_conclusive_gate.md  issue 39's powered gate (declared_conclusive_gate.md),
+#                    from its pinned revision 5da50a8 (d117758 plus the gate-only patch); run `conclusive` first on
+#                    the same home: the gate's draws, pretraining and demos are that study's cached steps
 #   state         -> docs/studies/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/studies/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
 #                    pixels gate actually run on a lent GPU is docs/studies/study_pixels_gpu.md, scripts/pixels_gate_gpu.py)
 # Usage: scripts/reproduce_results.sh [control-small|control|control-10000|control-hard|control-flow|
 #        control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|
 #        control-hard-extraction|control-hard-extraction-small|control-hard-extraction-3seeds|
-#        control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|control-hard-extraction-flow|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
+#        control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|control-hard-extraction-flow|
+#        conclusive|conclusive-gate|state|pixels]   (CAPVECTOR_HOME: ./capvector_home)
 # The calibration behind the control presets: docs/studies/calibration.md (capvector calibrate --preset
 # calibrate-control, scripts/pilot_aux.py).
 set -euo pipefail
@@ -82,6 +88,13 @@ case "$preset" in
   control-hard-extraction-flow)
     .venv/bin/capvector study --preset study-control-hard-extraction --set policy.type=flow \
       --set name=study-control-hard-extraction-flow --report docs/studies/study_control_hard_extraction_flow.md ;;
-  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-small|control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|control-hard-extraction-flow|state|pixels]" >&2
+  conclusive | conclusive-gate)
+    # the pinned revision's own code (capvector/__init__.py maps the package onto the worktree's folders)
+    if [ "$preset" = conclusive ]; then rev=d117758; else rev=5da50a8; fi
+    tree="$(mktemp -d)/src"
+    git worktree add --detach "$tree" "$rev"
+    trap 'git worktree remove --force "$tree"' EXIT
+    PYTHONPATH="$tree" .venv/bin/capvector study --preset "study-$preset" --report "docs/studies/study_${preset//-/_}.md" ;;
+  *) echo "usage: $0 [control-small|control|control-10000|control-hard|control-flow|control-2demos|control-large|control-large-3draws|control-large-5draws|control-large-2000|control-hard-extraction|control-hard-extraction-small|control-hard-extraction-large-5draws|control-hard-extraction-split|control-hard-extraction-small-flow|control-hard-extraction-flow|conclusive|conclusive-gate|state|pixels]" >&2
      exit 2 ;;
 esac
