@@ -11,58 +11,24 @@ unbounded pool (PrefectHQ/prefect#14194). Waiting costs a thread nothing, so `St
 waiting step its own (up to `WAITING_STEPS`); the process pool still runs at most `max_workers` steps
 at once.
 
-Prefect spawns each worker, and each then imports torch, torch._dynamo (the first optimizer does),
-Meta-World, Prefect and the step modules: about 4 s of CPU per worker, more than a tiny step's work.
-`StepPool` starts its workers from a fork server instead (multiprocessing's `forkserver`): one clean
-process, started with the first pool, that imports those modules once (`PRELOAD` and every module of
-capvector.tasks.steps) and forks each worker from that state. It is single-threaded and has initialised
-neither CUDA, OpenMP nor a GL context, which is what makes forking it safe where forking the CLI
-(threads, an event loop) is not. It dies with the process that started it
-(flows/runtime/fork_server_guard.py, its first import), and the workers with it.
-benchmarks/results/pipeline.md has a cold run's CPU with both start methods.
+Its workers are forked from a preloaded fork server (flows/runtime/fork_server.py) instead of spawned:
+the step modules and their libraries are imported once per process, not once per worker, and the server
+dies with the process that started it, the workers with it. benchmarks/results/pipeline.md has a cold
+run's CPU with both start methods.
 """
 
 from __future__ import annotations
 
-import multiprocessing
-import os
-import pkgutil
-import threading
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from multiprocessing import forkserver
-from multiprocessing.context import BaseContext
 from typing import Self
 
 from prefect.task_runners import ProcessPoolTaskRunner, _initialize_process_pool_worker
 
-import capvector.tasks.steps
-from capvector.flows.runtime.fork_server_guard import FORK_SERVER_PARENT_ENV
+from capvector.flows.runtime.fork_server import preloaded_fork_server
 from capvector.tasks.runtime.prefect_task import bind_worker_to_parent
 
 WAITING_STEPS = 512
 """Steps that may wait for their inputs at once (a large study submits a few hundred)."""
-
-PRELOAD = ("capvector.flows.runtime.fork_server_guard", "torch._dynamo", "metaworld", "prefect.task_engine")
-"""Imported by the fork server, in this order, before the step modules: the guard that binds it to its
-starter, then what every worker imports sooner or later."""
-
-
-def preloaded_fork_server() -> BaseContext:
-    """multiprocessing's `forkserver` context, its server told to import the step modules first (a module
-    that fails to import there is imported by the worker that needs it, and fails there with its own
-    error). The server's parent-death signal is bound to the thread that starts it, so it is started
-    here when this is the main thread (a flow's, in the CLI): it then lives as long as the process, for
-    every pool. Elsewhere it starts with the pool's first worker, from one of the pool's input-waiting
-    threads, and dies when they end, after the pool's workers. Prefect enters the task runner again
-    inside each step worker, which starts nothing."""
-    steps = [f"capvector.tasks.steps.{m.name}" for m in pkgutil.iter_modules(capvector.tasks.steps.__path__)]
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([*PRELOAD, *steps])
-    if multiprocessing.parent_process() is None:  # not a step worker
-        os.environ[FORK_SERVER_PARENT_ENV] = str(os.getpid())
-        if threading.current_thread() is threading.main_thread():
-            forkserver.ensure_running()
-    return context
 
 
 class StepPool(ProcessPoolTaskRunner):
