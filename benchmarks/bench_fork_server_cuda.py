@@ -11,6 +11,8 @@ training (it must not be), and each worker's seconds from submit to result.
     PYTHONPATH=. python benchmarks/bench_fork_server_cuda.py [--steps 200]
     PYTHONPATH=. python benchmarks/bench_fork_server_cuda.py --device cpu --quick   (a dry run)
 
+On a lent GPU machine without EGL, run it with MUJOCO_GL=disable (nothing here renders).
+
 Prefect need not be installed: the server then skips the preloaded modules that import it, as it skips
 any module that fails to import.
 """
@@ -150,7 +152,7 @@ def _importable(name: str) -> bool:
     """Whether this machine imports `name`: the server skips each preloaded module that it cannot."""
     try:
         __import__(name)
-    except ImportError:
+    except Exception:  # what the server does too (flows/runtime/fork_server._preload)
         return False
     return True
 

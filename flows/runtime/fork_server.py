@@ -12,10 +12,11 @@ it safe where forking the CLI (threads, an event loop) is not.
 **Dying with the CLI.** A fork server exits when every process holding the write end of its "alive" pipe
 has gone, and every worker it forks holds one, as the process that started it does. So a CLI killed with
 `kill -9` would leave the server running, and with it the workers, whose parent it is. This module is the
-server's first import: there it asks the kernel for SIGKILL when the starter dies (Linux,
+server's one preload: there it asks the kernel for SIGKILL when the starter dies (Linux,
 `PR_SET_PDEATHSIG`); the workers, bound to the server (capvector.tasks.runtime.prefect_task.
 bind_worker_to_parent), follow it. The starter names itself in `FORK_SERVER_PARENT_ENV`; a server whose
-starter is already gone exits at once. Imported anywhere else, the module binds nothing.
+starter is already gone exits at once. Then it imports the rest itself (`_preload`). Imported anywhere
+else, the module binds and imports nothing.
 """
 
 from __future__ import annotations
@@ -34,13 +35,13 @@ import capvector.tasks.steps
 FORK_SERVER_PARENT_ENV = "CAPVECTOR_FORK_SERVER_PARENT"
 PR_SET_PDEATHSIG = 1
 
-PRELOAD = ("capvector.flows.runtime.fork_server", "torch._dynamo", "metaworld", "prefect.task_engine")
-"""Imported by the fork server, in this order, before the step modules: this module (the guard), then
-what every worker imports sooner or later."""
+PRELOAD = ("torch._dynamo", "metaworld", "prefect.task_engine")
+"""Imported by the fork server before the step modules: what every worker imports sooner or later."""
 
 
 def preload_modules() -> list[str]:
-    """What the server imports, in order: `PRELOAD`, then every module of capvector.tasks.steps."""
+    """What the server imports after this module, in order: `PRELOAD`, then every module of
+    capvector.tasks.steps."""
     steps = [f"capvector.tasks.steps.{m.name}" for m in pkgutil.iter_modules(capvector.tasks.steps.__path__)]
     return [*PRELOAD, *steps]
 
@@ -54,7 +55,7 @@ def preloaded_fork_server() -> BaseContext:
     threads, and dies when they end, after the pool's workers. Prefect enters the task runner again
     inside each step worker, which starts nothing."""
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(preload_modules())
+    context.set_forkserver_preload([__name__])  # the rest it imports itself (`_preload`)
     if multiprocessing.parent_process() is None:  # not a step worker
         os.environ[FORK_SERVER_PARENT_ENV] = str(os.getpid())
         if threading.current_thread() is threading.main_thread():
@@ -75,7 +76,7 @@ def _in_fork_server() -> bool:
 
 def _bind_to_starter() -> None:
     starter = os.environ.get(FORK_SERVER_PARENT_ENV)
-    if starter is None or not _in_fork_server():
+    if starter is None:
         return
     if sys.platform.startswith("linux"):
         import ctypes
@@ -85,4 +86,18 @@ def _bind_to_starter() -> None:
         os._exit(1)
 
 
-_bind_to_starter()
+def _preload() -> None:
+    """The server's imports. multiprocessing's own preload lets any error but ImportError end the server,
+    and its pool then fails with "unexpected EOF" (seen where Meta-World's import raised for want of
+    EGL); here a module that fails to import is skipped, and the worker that needs it fails with the
+    module's own error."""
+    for name in preload_modules():
+        try:
+            __import__(name)
+        except Exception:  # the worker that imports it reports it
+            continue
+
+
+if _in_fork_server():
+    _bind_to_starter()
+    _preload()
