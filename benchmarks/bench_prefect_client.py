@@ -22,6 +22,9 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 RESULTS = HERE / "results"
+sys.path.insert(0, str(REPO))
+
+from capvector.flows.runtime.prefect_server import _no_ca_bundle_for_plain_http  # noqa: E402
 
 CREATE = """
 import sys, time
@@ -34,19 +37,22 @@ print((time.process_time() - start) / int(sys.argv[1]))
 """
 
 
-def per_client_s(clients: int, one_certificate: bool, prefect_home: Path) -> float:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API_SSL")}
-    env |= {"PREFECT_HOME": str(prefect_home), "PREFECT_API_URL": "http://127.0.0.1:9/api"}
-    if one_certificate:
-        sys.path.insert(0, str(REPO))
-        from capvector.flows.runtime.prefect_server import _no_ca_bundle_for_plain_http
+def plain_http_env(prefect_home: Path) -> dict[str, str]:
+    """This environment with a plain-http API and no certificate file of its own."""
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_SSL_CERT_FILE"}
+    return env | {"PREFECT_HOME": str(prefect_home), "PREFECT_API_URL": "http://127.0.0.1:9/api"}
 
-        saved = dict(os.environ)
-        os.environ.update(env)
-        _no_ca_bundle_for_plain_http()
-        env["PREFECT_API_SSL_CERT_FILE"] = os.environ["PREFECT_API_SSL_CERT_FILE"]
-        os.environ.clear()
-        os.environ.update(saved)
+
+def one_certificate_bundle(env: dict[str, str]) -> str:
+    """The bundle the CLI names for `env`, made by the CLI's own function (in this script's environment)."""
+    os.environ.clear()
+    os.environ.update(env)
+    _no_ca_bundle_for_plain_http()
+    return os.environ["PREFECT_API_SSL_CERT_FILE"]
+
+
+def per_client_s(clients: int, env: dict[str, str]) -> float:
+    """CPU seconds per client created, in a fresh process with `env`."""
     command = [sys.executable, "-c", CREATE, str(clients)]
     out = subprocess.run(command, env=env, capture_output=True, text=True)
     if out.returncode:
@@ -60,10 +66,12 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="capvector-bench-client-") as home:
+        default_env = plain_http_env(Path(home))
+        one_env = {**default_env, "PREFECT_API_SSL_CERT_FILE": one_certificate_bundle(default_env)}
         default, one = [], []
         for _ in range(args.rounds):
-            default.append(per_client_s(args.clients, False, Path(home)))
-            one.append(per_client_s(args.clients, True, Path(home)))
+            default.append(per_client_s(args.clients, default_env))
+            one.append(per_client_s(args.clients, one_env))
     result = {
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}",

@@ -16,7 +16,13 @@ MAY_IMPORT = {
     "capvector.core": {"capvector.durable"},
     "capvector.stats": set(),
     "capvector.artifacts": {"capvector.durable"},
-    "capvector.tasks": {"capvector.durable", "capvector.core", "capvector.stats", "capvector.artifacts"},
+    "capvector.tasks": {
+        "capvector.durable",
+        "capvector.parent_death",
+        "capvector.core",
+        "capvector.stats",
+        "capvector.artifacts",
+    },
 }
 MAX_MODULES_PER_FOLDER = 15
 

@@ -31,9 +31,9 @@ from multiprocessing import forkserver
 from multiprocessing.context import BaseContext
 
 import capvector.tasks.steps
+from capvector.parent_death import set_parent_death_signal
 
 FORK_SERVER_PARENT_ENV = "CAPVECTOR_FORK_SERVER_PARENT"
-PR_SET_PDEATHSIG = 1
 
 PRELOAD = ("torch._dynamo", "metaworld", "prefect.task_engine")
 """Imported by the fork server before the step modules: what every worker imports sooner or later."""
@@ -78,10 +78,7 @@ def _bind_to_starter() -> None:
     starter = os.environ.get(FORK_SERVER_PARENT_ENV)
     if starter is None:
         return
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    set_parent_death_signal(signal.SIGKILL)
     if os.getppid() != int(starter):  # it died before the signal was armed
         os._exit(1)
 

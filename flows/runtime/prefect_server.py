@@ -39,9 +39,9 @@ import urllib.request
 from pathlib import Path
 
 from capvector.durable import write_atomic
+from capvector.parent_death import set_parent_death_signal
 
 START_TIMEOUT_ENV = "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"
-PR_SET_PDEATHSIG = 1
 
 
 class RunServer:
@@ -165,7 +165,7 @@ PLAIN_HTTP_CA = "capvector-plain-http-ca.pem"
 
 def _no_ca_bundle_for_plain_http() -> None:
     """Every Prefect client builds a verifying TLS context, also for a plain-http API that never uses
-    one, and parses the whole CA bundle for it: about 45 ms of CPU per client, and a step makes two.
+    one, and parses the whole CA bundle for it: about 40 ms of CPU per client, and a step makes two.
     For an http:// API URL (the run's own server, a local `prefect server start`) Prefect is pointed at
     a bundle of one certificate instead (PREFECT_API_SSL_CERT_FILE, unless already set), which parses in
     about 1 ms. An https:// API keeps Prefect's verification as configured."""
@@ -174,8 +174,7 @@ def _no_ca_bundle_for_plain_http() -> None:
         return
     import certifi
 
-    home = Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
-    bundle = home / PLAIN_HTTP_CA
+    bundle = _prefect_home() / PLAIN_HTTP_CA
     if not bundle.exists():
         first = Path(certifi.where()).read_text().split("-----END CERTIFICATE-----")[0]
         write_atomic(bundle, first + "-----END CERTIFICATE-----\n")
@@ -203,12 +202,17 @@ def wait_for_api() -> None:
         raise ValueError(f"the Prefect server at PREFECT_API_URL={url} is not reachable: {exc}") from None
 
 
+def _prefect_home() -> Path:
+    """Prefect's home folder, as Prefect resolves it (PREFECT_HOME, else ~/.prefect)."""
+    return Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
+
+
 def _lock_prefect_home() -> int:
     """Hold PREFECT_HOME's boot lock until the server answers: a server's start migrates and seeds
     Prefect's database, and two first starts on one new database race (a duplicate index or block
     type kills one of them). Servers of concurrent runs boot one after another; the lock is an flock,
     so a CLI that dies releases it."""
-    home = Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect").expanduser()
+    home = _prefect_home()
     home.mkdir(parents=True, exist_ok=True)
     fd = os.open(home / ".capvector-server-boot.lock", os.O_RDWR | os.O_CREAT, 0o644)
     fcntl.flock(fd, fcntl.LOCK_EX)
@@ -217,10 +221,7 @@ def _lock_prefect_home() -> int:
 
 def _die_with_parent(parent: int):
     def arm() -> None:  # runs in the child between fork and exec
-        if sys.platform.startswith("linux"):
-            import ctypes
-
-            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        set_parent_death_signal(signal.SIGTERM)
         if os.getppid() != parent:  # the CLI died before the signal was armed
             os._exit(1)
 

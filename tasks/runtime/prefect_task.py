@@ -30,10 +30,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from capvector.parent_death import parent_pid, set_parent_death_signal
 from capvector.tasks.runtime.caching import NotCached, probing, step_label, step_outcomes
 
 WATCHDOG_PERIOD_S = 0.25
-PR_SET_PDEATHSIG = 1
 
 # The pid of the process that started this one (the CLI, or the CLI's fork server), once it is a bound
 # step worker.
@@ -168,7 +168,7 @@ def bind_worker_to_parent() -> None:
     if parent is None or parent.pid is None:
         return
     starter = os.getppid()
-    _set_parent_death_signal(signal.SIGKILL)
+    set_parent_death_signal(signal.SIGKILL)
     if os.getppid() != starter or not _started_for(starter, parent.pid):  # gone before the signal was armed
         os._exit(1)
     _bound_parent = starter
@@ -181,11 +181,8 @@ def _started_for(starter: int, cli: int) -> bool:
     starter is taken on trust (the watchdog still ends the worker when it goes)."""
     if starter == cli:
         return True
-    try:
-        stat = open(f"/proc/{starter}/stat").read()
-    except OSError:
-        return not sys.platform.startswith("linux")
-    return int(stat[stat.rindex(")") + 2 :].split()[1]) == cli
+    parent = parent_pid(starter)
+    return parent == cli if parent is not None else not sys.platform.startswith("linux")
 
 
 # ---------------------------------------------------------------------------- failure logs
@@ -225,17 +222,6 @@ def refuse_if_abandoned(step: str) -> None:
         raise RunAbandoned(
             f"step {step!r} not run: its parent process {_bound_parent} (the CLI or its fork server) is gone"
         )
-
-
-def _set_parent_death_signal(signum: int) -> None:
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signum), 0, 0, 0)
-    except (OSError, AttributeError):  # no prctl: the watchdog alone
-        pass
 
 
 def _start_watchdog(parent: int) -> None:
