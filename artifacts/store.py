@@ -92,6 +92,13 @@ from capvector.artifacts.records import (
 from capvector.durable import fsync_dir, write_atomic
 
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
+
+
+def _valid_id(id_or_prefix: object) -> str:
+    """An artifact id or prefix, lowercased; MalformedId for anything else."""
+    if not isinstance(id_or_prefix, str) or not PREFIX_RE.match(id_or_prefix.lower()):
+        raise MalformedId(f"{id_or_prefix!r} is not an artifact id (6 to 64 hex characters)")
+    return id_or_prefix.lower()
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 CHANGES = "changes"  # a remote store's change token (ArtifactStore._note_change)
 INDEX = "index"  # content-cache index objects (ArtifactStore.put_index_entry)
@@ -353,10 +360,16 @@ class ArtifactStore:
         self.local = isinstance(self.fs, LocalFileSystem)
         self.root = os.path.abspath(root_path) if self.local else root_path.rstrip("/")
         self.cache_dir = Path(cache_dir) if cache_dir else home_mod.local_cache_dir(self.url) / "objects"
-        self.fs.makedirs(self._p("objects"), exist_ok=True)
+        self._makedirs(self._p("objects"))
         # Called with every record read from an unsealed sidecar (see capvector.artifacts.api: it raises
         # CorruptArtifact when the catalogue recorded that artifact sealed, i.e. the seal was stripped).
         self.unsealed_guard: Callable[[ArtifactRecord], None] | None = None
+
+    def _makedirs(self, path: str) -> None:
+        """A folder, on a local store. An object store has no folders (a key needs no parent), and
+        s3fs's makedirs there costs a request (it looks the bucket up)."""
+        if self.local:
+            self.fs.makedirs(path, exist_ok=True)
 
     # ---------------------------------------------------------------- paths
     def _p(self, *parts: str) -> str:
@@ -390,7 +403,7 @@ class ArtifactStore:
 
     def _stage(self) -> str:
         tmp = self._p("tmp", uuid.uuid4().hex)
-        self.fs.makedirs(tmp, exist_ok=True)
+        self._makedirs(tmp)
         return tmp
 
     @contextlib.contextmanager
@@ -416,8 +429,11 @@ class ArtifactStore:
     def _discard(self, path: str) -> None:
         if self.local:
             shutil.rmtree(path, ignore_errors=True)
-        elif self.fs.exists(path):
+            return
+        try:
             self.fs.rm(path, recursive=True)
+        except FileNotFoundError:  # nothing there: one request, not an existence check and a removal
+            pass
 
     def _commit_object(
         self, staged: str, artifact_id: str, entries: list[tuple[str, int, str]], present: bool
@@ -430,7 +446,7 @@ class ArtifactStore:
         sidecar, written after this returns, is what makes the artifact visible."""
         final = self.object_path(artifact_id)
         if self.local:
-            self.fs.makedirs(posixpath.dirname(final), exist_ok=True)
+            self._makedirs(posixpath.dirname(final))
             try:
                 os.rename(staged, final)
             except OSError as e:
@@ -448,7 +464,6 @@ class ArtifactStore:
         """Copy the files `rels` under `src` to the same relative keys under `dst` on a remote store
         (server side where the filesystem can: S3 CopyObject, GCS rewrite), all before returning."""
         if rels:
-            self.fs.makedirs(dst, exist_ok=True)
             srcs = [posixpath.join(src, rel) for rel in rels]
             dsts = [posixpath.join(dst, rel) for rel in rels]
             self.fs.copy(srcs, dsts)
@@ -469,11 +484,14 @@ class ArtifactStore:
         if self.local:
             st = os.stat(path)
             return st.st_size, st.st_mtime_ns
-        size = int(self.fs.info(path)["size"])
-        try:
-            modified: datetime = self.fs.modified(path)
-        except (NotImplementedError, OSError):
-            return size, None
+        info = self.fs.info(path)
+        size = int(info["size"])
+        modified = info.get("LastModified")  # s3fs's, which its `modified` would fetch in a second HEAD
+        if not isinstance(modified, datetime):
+            try:
+                modified = self.fs.modified(path)
+            except (NotImplementedError, OSError):
+                return size, None
         return size, int(modified.timestamp() * 1_000_000) * 1000
 
     # ---------------------------------------------------------------- writing artifacts
@@ -490,10 +508,10 @@ class ArtifactStore:
             )
             check_single_line("parent role", ref.role)
             try:
-                full = self.resolve(ref.id)
+                full = self._lookup(ref.id)
+                self._check_parent(full, (hashed or {}).get(full))
             except ArtifactNotFound:
                 raise UnknownParent(ref.id) from None
-            self._check_parent(full, (hashed or {}).get(full))
             out.append(ref.model_copy(update={"id": full}))
         return out
 
@@ -589,8 +607,6 @@ class ArtifactStore:
         A sidecar that is unreadable or fails its seal counts as none, and the object it described is
         discarded: re-running the computation that produced the content is the one way to change an
         artifact's metadata, and this registration is that re-run."""
-        if not self.fs.exists(self.sidecar_path(artifact_id)):
-            return None
         try:
             return self._load_sidecar(artifact_id)
         except ArtifactNotFound:
@@ -625,8 +641,7 @@ class ArtifactStore:
             _expect({filename: sha256} if sha256 else {}, [(filename, size, digest)])
             return self._finish(staged, digest, "file", [(filename, size, digest)], meta, refs)
         finally:
-            if self.fs.exists(staged):
-                self._discard(staged)
+            self._discard(staged)
 
     def put_file(
         self,
@@ -722,7 +737,7 @@ class ArtifactStore:
             entries = []
             for rel, full in members:
                 dst = posixpath.join(staged, rel)
-                self.fs.makedirs(posixpath.dirname(dst), exist_ok=True)
+                self._makedirs(posixpath.dirname(dst))
                 f, listed = _open_member(full, rel, src_dir)
                 with f:
                     digest, size = self._write_stream(_Bounded(f, listed + 1), dst)
@@ -737,8 +752,7 @@ class ArtifactStore:
                     fsync_dir(d)
             return self._finish(staged, manifest_id(entries), "dir", entries, meta, refs)
         finally:
-            if self.fs.exists(staged):
-                self._discard(staged)
+            self._discard(staged)
 
     def _adopt(
         self,
@@ -782,9 +796,7 @@ class ArtifactStore:
     # ---------------------------------------------------------------- reading
     def resolve(self, id_or_prefix: str) -> str:
         """Full id for an id or a prefix of at least 6 hex characters."""
-        if not isinstance(id_or_prefix, str) or not PREFIX_RE.match(id_or_prefix.lower()):
-            raise MalformedId(f"{id_or_prefix!r} is not an artifact id (6 to 64 hex characters)")
-        prefix = id_or_prefix.lower()
+        prefix = _valid_id(id_or_prefix)
         if len(prefix) == 64:
             if self.fs.exists(self.sidecar_path(prefix)):
                 return prefix
@@ -831,9 +843,15 @@ class ArtifactStore:
             self.unsealed_guard(record)
         return record
 
+    def _lookup(self, id_or_prefix: str) -> str:
+        """A full id as it is, a prefix resolved: for a caller that reads the sidecar next, whose
+        absence is ArtifactNotFound as `resolve`'s check would be (one request fewer remotely)."""
+        prefix = _valid_id(id_or_prefix)
+        return prefix if len(prefix) == 64 else self.resolve(prefix)
+
     def get(self, id_or_prefix: str) -> ArtifactRecord:
         """The record of a committed artifact (metadata only; use `path` to reach the content)."""
-        return self._load_sidecar(self.resolve(id_or_prefix))
+        return self._load_sidecar(self._lookup(id_or_prefix))
 
     def exists(self, id_or_prefix: str) -> bool:
         try:
@@ -1131,7 +1149,7 @@ class ArtifactStore:
 
     def put_run(self, run: RunRecord) -> None:
         """Create or update a run record (runs change state, so they are replaced, not content-addressed)."""
-        self.fs.makedirs(self._p("runs"), exist_ok=True)
+        self._makedirs(self._p("runs"))
         self._write_small(self._run_path(run.flow_run_id), run.model_dump_json(indent=1).encode())
         self._note_change()
 
@@ -1164,8 +1182,7 @@ class ArtifactStore:
         writers of one key write the same answer (its lock, capvector.tasks.runtime.caching.step_lock,
         holds one machine's; on two machines the last PUT stands, each naming a verified artifact)."""
         path = self.index_entry_path(key)
-        if self.local:
-            self.fs.makedirs(posixpath.dirname(path), exist_ok=True)
+        self._makedirs(posixpath.dirname(path))
         self._write_small(path, data)
 
     def index_entry(self, key: str) -> bytes | None:
@@ -1242,7 +1259,7 @@ class ArtifactStore:
                     result.kept.append(artifact_id)
                     continue
                 dest = self._p("quarantine", stamp, artifact_id)
-                self.fs.makedirs(posixpath.dirname(dest), exist_ok=True)
+                self._makedirs(posixpath.dirname(dest))
                 self._move_tree(p, dest)
                 result.quarantined.append(dest)
         return result
