@@ -454,11 +454,11 @@ class ArtifactStore:
                     raise
                 shutil.rmtree(staged, ignore_errors=True)  # same content already committed
             fsync_dir(posixpath.dirname(final))
-        elif present:
-            self._discard(staged)
         else:
-            self._copy_files(staged, final, [rel for rel, _, _ in entries])
-            self._discard(staged)
+            rels = [rel for rel, _, _ in entries]
+            if not present:
+                self._copy_files(staged, final, rels)
+            self.fs.rm([posixpath.join(staged, rel) for rel in rels])  # by key: no listing first
 
     def _copy_files(self, src: str, dst: str, rels: list[str]) -> None:
         """Copy the files `rels` under `src` to the same relative keys under `dst` on a remote store
@@ -640,8 +640,9 @@ class ArtifactStore:
             digest, size = self._write_stream(src, posixpath.join(staged, filename))
             _expect({filename: sha256} if sha256 else {}, [(filename, size, digest)])
             return self._finish(staged, digest, "file", [(filename, size, digest)], meta, refs)
-        finally:
+        except BaseException:  # a commit consumes the staged files; what a failure left is removed
             self._discard(staged)
+            raise
 
     def put_file(
         self,
@@ -751,8 +752,9 @@ class ArtifactStore:
                 for d in {posixpath.dirname(posixpath.join(staged, rel)) for rel, _ in members}:
                     fsync_dir(d)
             return self._finish(staged, manifest_id(entries), "dir", entries, meta, refs)
-        finally:
+        except BaseException:  # a commit consumes the staged files; what a failure left is removed
             self._discard(staged)
+            raise
 
     def _adopt(
         self,
