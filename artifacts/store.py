@@ -92,13 +92,6 @@ from capvector.artifacts.records import (
 from capvector.durable import fsync_dir, write_atomic
 
 PREFIX_RE = re.compile(r"^[0-9a-f]{6,64}$")
-
-
-def _valid_id(id_or_prefix: object) -> str:
-    """An artifact id or prefix, lowercased; MalformedId for anything else."""
-    if not isinstance(id_or_prefix, str) or not PREFIX_RE.match(id_or_prefix.lower()):
-        raise MalformedId(f"{id_or_prefix!r} is not an artifact id (6 to 64 hex characters)")
-    return id_or_prefix.lower()
 RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 CHANGES = "changes"  # a remote store's change token (ArtifactStore._note_change)
 INDEX = "index"  # content-cache index objects (ArtifactStore.put_index_entry)
@@ -114,6 +107,13 @@ RACY_WINDOW_NS = 2 * 10**9
 _MEMO_MAX = 100_000
 _verified: dict[tuple[Any, ...], tuple[str, int]] = {}
 _verified_lock = threading.Lock()
+
+
+def _valid_id(id_or_prefix: object) -> str:
+    """An artifact id or prefix, lowercased; MalformedId for anything else."""
+    if not isinstance(id_or_prefix, str) or not PREFIX_RE.match(id_or_prefix.lower()):
+        raise MalformedId(f"{id_or_prefix!r} is not an artifact id (6 to 64 hex characters)")
+    return id_or_prefix.lower()
 
 
 def clear_verified_memo() -> None:

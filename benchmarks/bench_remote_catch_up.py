@@ -12,6 +12,7 @@ CAPVECTOR_CACHE) of the same store, alternating, median of --rounds.
 """
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -36,23 +37,14 @@ def main() -> None:
     args = ap.parse_args()
 
     import boto3
-    import s3fs
-    from moto.server import ThreadedMotoServer
+    from moto_s3 import moto_s3
 
     from capvector.artifacts import catalogue as catalogue_mod
     from capvector.artifacts.api import ArtifactsAPI
 
     logging.getLogger("werkzeug").setLevel(logging.WARNING)
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    os.environ.update(
-        AWS_ENDPOINT_URL=f"http://{host}:{port}",
-        AWS_ACCESS_KEY_ID="testing",
-        AWS_SECRET_ACCESS_KEY="testing",
-        AWS_DEFAULT_REGION="us-east-1",
-    )
-    s3fs.S3FileSystem.clear_instance_cache()
+    s3 = contextlib.ExitStack()
+    s3.enter_context(moto_s3())
     bucket = f"bench-{uuid.uuid4().hex[:8]}"
     boto3.client("s3").create_bucket(Bucket=bucket)
     home = f"s3://{bucket}/home"
@@ -105,7 +97,7 @@ def main() -> None:
         ArtifactsAPI(home)
         unchanged.append(time.perf_counter() - t)
     fs.cat_file = real_cat_file
-    server.stop()
+    s3.close()
 
     med = statistics.median
     result = {

@@ -88,29 +88,18 @@ def main() -> None:
     ap.add_argument("--before", default=None, help="also count the requests of this revision (a worktree)")
     args = ap.parse_args()
 
-    from moto.server import ThreadedMotoServer
+    from moto_s3 import moto_s3
 
     counter = _Requests()
     werkzeug = logging.getLogger("werkzeug")
     werkzeug.setLevel(logging.INFO)
     werkzeug.addHandler(counter)
     werkzeug.propagate = False
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    s3 = {
-        "AWS_ENDPOINT_URL": f"http://{host}:{port}",
-        "AWS_ACCESS_KEY_ID": "testing",
-        "AWS_SECRET_ACCESS_KEY": "testing",
-        "AWS_DEFAULT_REGION": "us-east-1",
-    }
-    os.environ.update(s3)
     work = Path(tempfile.mkdtemp(prefix="s3-requests-"))
 
     def env(name: str, **extra: str) -> dict[str, str]:
         return {
-            **os.environ,
-            **s3,
+            **os.environ,  # moto's address and keys among them
             "CAPVECTOR_CACHE": str(work / name / "cache"),
             "PREFECT_HOME": str(work / name / "prefect"),
             "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
@@ -119,7 +108,7 @@ def main() -> None:
         }
 
     result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "after": {}}
-    try:
+    with moto_s3():
         result["after"] = cold_smoke(REPO, env("after"), counter)
         if args.before:
             tree = work / "before-tree"
@@ -131,8 +120,6 @@ def main() -> None:
             finally:
                 subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, check=False)
             result["ratio"] = round(result["after"]["requests"] / result["before"]["requests"], 2)
-    finally:
-        server.stop()
     print(json.dumps(result, indent=1))
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "s3_requests.json").write_text(json.dumps(result, indent=1) + "\n")
