@@ -62,8 +62,9 @@ def main() -> None:
     parser.add_argument("--before", default="56d40ee", help="the revision to compare with (pip alone)")
     parser.add_argument("--rounds", type=int, default=1)
     args = parser.parse_args()
-    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True, check=True).stdout.strip()
+    head = subprocess.run(
+        ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+    ).stdout.strip()
     load_start = os.getloadavg()[0]
     rounds = []
     with tempfile.TemporaryDirectory(prefix="bench-install-") as tmp:
@@ -71,8 +72,11 @@ def main() -> None:
             order = (args.before, head) if i % 2 == 0 else (head, args.before)
             results = {r["rev"]: r for r in (_install(rev, Path(tmp) / str(i)) for rev in order)}
             rounds.append(results)
-            print(f"round {i + 1}: {args.before} {results[args.before]['seconds']} s, "
-                  f"{head} {results[head]['seconds']} s", flush=True)
+            print(
+                f"round {i + 1}: {args.before} {results[args.before]['seconds']} s, "
+                f"{head} {results[head]['seconds']} s",
+                flush=True,
+            )
     before_s = sorted(r[args.before]["seconds"] for r in rounds)[len(rounds) // 2]
     after_s = sorted(r[head]["seconds"] for r in rounds)[len(rounds) // 2]
     old, new = rounds[0][args.before]["packages"], rounds[0][head]["packages"]
@@ -83,11 +87,16 @@ def main() -> None:
         "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "load_average": [round(load_start, 1), round(os.getloadavg()[0], 1)],
-        "before": args.before, "head": head,
+        "before": args.before,
+        "head": head,
         "rounds": [{rev: r["seconds"] for rev, r in rd.items()} for rd in rounds],
-        "before_s": before_s, "head_s": after_s, "ratio": round(after_s / before_s, 2),
+        "before_s": before_s,
+        "head_s": after_s,
+        "ratio": round(after_s / before_s, 2),
         "torch": [old.get("torch"), new.get("torch")],
-        "packages": [len(old), len(new)], "only_before": only_old, "only_head": only_new,
+        "packages": [len(old), len(new)],
+        "only_before": only_old,
+        "only_head": only_new,
         "other_version": other_version,
     }
     RESULTS.mkdir(exist_ok=True)
@@ -102,9 +111,11 @@ def main() -> None:
         "| recipe | seconds | rounds |",
         "|---|---|---|",
         f"| {args.before} (pip for everything) | {before_s} | "
-        + ", ".join(str(r[args.before]["seconds"]) for r in rounds) + " |",
+        + ", ".join(str(r[args.before]["seconds"]) for r in rounds)
+        + " |",
         f"| {head} (pip for uv and torch, uv for the project) | {after_s} | "
-        + ", ".join(str(r[head]["seconds"]) for r in rounds) + " |",
+        + ", ".join(str(r[head]["seconds"]) for r in rounds)
+        + " |",
         "",
         f"{head} / {args.before}: **{record['ratio']}×**. torch: {old.get('torch')} / {new.get('torch')}; "
         f"{len(old)} / {len(new)} packages. Only before: {', '.join(only_old) or 'none'}. Only at {head}: "
