@@ -384,6 +384,11 @@ class ArtifactsAPI:
         self._read_ready()
         return self.catalogue.scores(self.store.resolve(id_or_prefix), fingerprint)
 
+    def cached_result(self, cache_key: str) -> str | None:
+        """The newest artifact the catalogue records as the result of the step with `cache_key`."""
+        self._read_ready()
+        return self.catalogue.cached_result(cache_key)
+
     def query(self, sql: str, params: Any = None) -> "pd.DataFrame":
         """Read-only SQL over the catalogue tables (on a snapshot: a long query holds no writer off)."""
         self._read_ready()

@@ -112,7 +112,7 @@ INDEXED_DOCS: dict[str, type[BaseModel]] = {
     VECTOR_SPECTRUM_KIND: VectorSpectrumDoc,
 }
 
-# Writes are a few rows: one thread halves the cost of opening the file (no worker pool to start).
+# A migration's own connection: one thread halves the cost of opening the file (no worker pool).
 WRITE_CONFIG = {"threads": 1}
 # Integer columns that may hold NULL: pandas would turn them into float64, so they get "Int64".
 INT_COLUMNS = {"size_bytes", "n_files", "numel", "episode", "seed", "steps", "n_episodes"}
@@ -165,6 +165,37 @@ def _attached_read(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> 
         finally:
             detach.close()
 
+
+
+def _attached_write(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
+    """`fn` in one transaction on a cursor whose default database is `path`, attached read-write for this
+    call only: a write without a DuckDB database of its own (about 1.5 ms of CPU against 21 ms, see
+    `_attached_read`), holding the file's lock from the attach to the detach, as a connection would."""
+    alias, quoted = f"catalogue_{next(_ALIASES)}", str(path).replace("'", "''")
+    con = _host_cursor()
+    try:
+        con.execute(f"ATTACH '{quoted}' AS {alias}")
+    except BaseException:
+        con.close()
+        raise
+    try:
+        con.execute(f"USE {alias}")
+        con.execute("BEGIN")
+        try:
+            out = fn(con)
+            con.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(duckdb.Error):  # a failed COMMIT has rolled back already
+                con.execute("ROLLBACK")
+            raise
+        return out
+    finally:
+        con.close()
+        detach = _host_cursor()
+        try:
+            detach.execute(f"DETACH {alias}")
+        finally:
+            detach.close()
 
 _WALK = """
 WITH RECURSIVE walk(id, depth) USING KEY (id) AS (
@@ -588,18 +619,7 @@ class Catalogue:
 
     def _write(self, fn: Callable[[duckdb.DuckDBPyConnection], T], max_wait_s: float | None = None) -> T:
         self._ensure_ready()
-
-        def work() -> T:
-            con = duckdb.connect(str(self.path), config=WRITE_CONFIG)
-            try:
-                con.execute("BEGIN")
-                out = fn(con)
-                con.execute("COMMIT")
-                return out
-            finally:
-                con.close()  # an uncommitted transaction is rolled back on close
-
-        return self._retrying(work, max_wait_s)
+        return self._retrying(lambda: _attached_write(self.path, fn), max_wait_s)
 
     def _lookup(self, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
         """`fn` on the catalogue attached read-only to this process's database: for this module's own
@@ -781,6 +801,17 @@ class Catalogue:
             lambda con: con.execute("SELECT sealed FROM artifacts WHERE id = ?", [artifact_id]).fetchall()
         )
         return rows[0][0] if rows else None
+
+    def cached_result(self, cache_key: str) -> str | None:
+        """The newest artifact recorded as the result of the step with `cache_key`, or None."""
+        rows = self._lookup(
+            lambda con: con.execute(
+                "SELECT id FROM artifacts WHERE json_extract_string(config, '$.cache_key') = ? "
+                "ORDER BY created_at DESC LIMIT 1",
+                [cache_key],
+            ).fetchall()
+        )
+        return str(rows[0][0]) if rows else None
 
     def known(self, artifact_ids: Sequence[str]) -> set[str]:
         """Those of `artifact_ids` that have a row."""

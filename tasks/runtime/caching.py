@@ -219,14 +219,9 @@ def _find(workspace: Workspace, key: str) -> tuple[str | None, str | None]:
     if entry is not None:
         artifact_id = entry["artifact_id"]
     else:
-        _, rows = workspace.api.query_rows(
-            "SELECT id FROM artifacts WHERE json_extract_string(config, '$.cache_key') = ? "
-            "ORDER BY created_at DESC LIMIT 1",
-            [key],
-        )
-        if not rows:
+        artifact_id = workspace.api.cached_result(key)
+        if artifact_id is None:
             return None, None
-        artifact_id = str(rows[0][0])
     try:
         record = workspace.api.get(artifact_id)
     except (ArtifactError, OSError):  # gone (or its sidecar is): a plain miss
