@@ -17,6 +17,7 @@ import os
 import platform
 import re
 import shutil
+import statistics
 import subprocess
 import tempfile
 import time
@@ -77,8 +78,8 @@ def main() -> None:
                 f"{head} {results[head]['seconds']} s",
                 flush=True,
             )
-    before_s = sorted(r[args.before]["seconds"] for r in rounds)[len(rounds) // 2]
-    after_s = sorted(r[head]["seconds"] for r in rounds)[len(rounds) // 2]
+    before_s = round(statistics.median(r[args.before]["seconds"] for r in rounds), 1)
+    after_s = round(statistics.median(r[head]["seconds"] for r in rounds), 1)
     old, new = rounds[0][args.before]["packages"], rounds[0][head]["packages"]
     only_old = sorted(set(old) - set(new))
     only_new = sorted(set(new) - set(old))
