@@ -42,8 +42,8 @@ run: install
 
 test: install
 	$(PY) -m ruff check .
-	# two workers, a test file each: most tests wait on subprocesses (a Prefect server, step workers);
-	# files in collection order, the longest first (tests/conftest.py LONGEST_FIRST)
+	# two workers for two cores, a test file each (three measured 1.12x slower: the suite is CPU-bound,
+	# docs/guide/reproducing.md); files in collection order, the longest first (tests/conftest.py LONGEST_FIRST)
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 lint: install
