@@ -119,9 +119,9 @@ INT_COLUMNS = {"size_bytes", "n_files", "numel", "episode", "seed", "steps", "n_
 
 # Creating a DuckDB database costs 20-40 ms (every built-in function is registered anew), attaching a
 # file to a running one about 2 ms. So the lookups this module runs itself (schema check, lineage,
-# scores) attach the catalogue read-only to one in-memory database per process, and detach it when
-# done: no lock outlives the unit of work, as with a connection of its own. Arbitrary SQL (`query`)
-# keeps a connection of its own with all of readonly_sql's guards.
+# scores, cache keys) and its writes attach the catalogue to one in-memory database per process, and
+# detach it when done: no lock outlives the unit of work, as with a connection of its own. Arbitrary
+# SQL (`query`) keeps a connection of its own with all of readonly_sql's guards.
 _HOST: tuple[int, duckdb.DuckDBPyConnection] | None = None
 _HOST_GUARD = threading.Lock()
 _ALIASES = itertools.count()
@@ -145,20 +145,23 @@ def _close_host() -> None:
         _HOST = None
 
 
-def _attached_read(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
-    """`fn` on a cursor whose default database is `path`, attached read-only for this call only."""
+@contextlib.contextmanager
+def _attached(path: Path, read_only: bool) -> Iterator[duckdb.DuckDBPyConnection]:
+    """A cursor whose default database is `path`, attached to the process's in-memory database for the
+    block only: no DuckDB database of its own (creating one costs 20-40 ms of CPU, attaching about 2 ms),
+    and the file's lock is held from the attach to the detach, as a connection would hold it."""
     alias, quoted = f"catalogue_{next(_ALIASES)}", str(path).replace("'", "''")
     con = _host_cursor()
     try:
-        con.execute(f"ATTACH '{quoted}' AS {alias} (READ_ONLY)")
+        con.execute(f"ATTACH '{quoted}' AS {alias}{' (READ_ONLY)' if read_only else ''}")
     except BaseException:
         con.close()
         raise
     try:
         con.execute(f"USE {alias}")
-        return fn(con)
+        yield con
     finally:
-        con.close()  # from another cursor, so that nothing `fn` left on this one can keep the file
+        con.close()  # from another cursor, so that nothing left on this one can keep the file
         detach = _host_cursor()
         try:
             detach.execute(f"DETACH {alias}")
@@ -166,20 +169,15 @@ def _attached_read(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> 
             detach.close()
 
 
+def _attached_read(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
+    """`fn` on the catalogue at `path`, attached read-only for this call only."""
+    with _attached(path, read_only=True) as con:
+        return fn(con)
+
 
 def _attached_write(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) -> T:
-    """`fn` in one transaction on a cursor whose default database is `path`, attached read-write for this
-    call only: a write without a DuckDB database of its own (about 1.5 ms of CPU against 21 ms, see
-    `_attached_read`), holding the file's lock from the attach to the detach, as a connection would."""
-    alias, quoted = f"catalogue_{next(_ALIASES)}", str(path).replace("'", "''")
-    con = _host_cursor()
-    try:
-        con.execute(f"ATTACH '{quoted}' AS {alias}")
-    except BaseException:
-        con.close()
-        raise
-    try:
-        con.execute(f"USE {alias}")
+    """`fn` in one transaction on the catalogue at `path`, attached read-write for this call only."""
+    with _attached(path, read_only=False) as con:
         con.execute("BEGIN")
         try:
             out = fn(con)
@@ -189,13 +187,7 @@ def _attached_write(path: Path, fn: Callable[[duckdb.DuckDBPyConnection], T]) ->
                 con.execute("ROLLBACK")
             raise
         return out
-    finally:
-        con.close()
-        detach = _host_cursor()
-        try:
-            detach.execute(f"DETACH {alias}")
-        finally:
-            detach.close()
+
 
 _WALK = """
 WITH RECURSIVE walk(id, depth) USING KEY (id) AS (
