@@ -1,7 +1,8 @@
-"""Wall time of `make install` on a fresh clone, with no download cache: this revision's recipe against
-an earlier revision's, in the same session (each in a clone of its own, one after the other).
+"""Wall time of `make install` on a fresh clone, with no download cache, and the CPU an import costs in what
+it installed: this revision's recipe against earlier revisions', in the same session (each in a clone of
+its own, one after the other).
 
-Run: python3 benchmarks/bench_install.py [--before REV] [--rounds N]
+Run: python3 benchmarks/bench_install.py [--before REV ...] [--rounds N]
 Writes benchmarks/results/install.{md,json}.
 
 `make test` starts with this install on every CI run (a clean clone, a new machine), so its time counts
@@ -9,6 +10,11 @@ against the suite's 15-minute budget as much as any test. pip's and uv's caches 
 (PIP_NO_CACHE_DIR, UV_NO_CACHE) as on a new machine; the system packages of
 scripts/install_system_deps.sh are already present after the first install and cost both recipes the
 same check. Each install is then checked: the same packages (names normalised) and torch's build.
+
+What an install leaves behind costs again in every process: with PYTHONDONTWRITEBYTECODE set, as on our
+machines, a module with no bytecode is compiled from source at each import and never cached. So each
+venv's share of modules with bytecode is counted, and the CPU of importing the stack every step process
+imports (torch, Prefect, DuckDB, s3fs, Meta-World) is measured in it: median of 3 fresh processes.
 """
 
 import argparse
@@ -16,6 +22,7 @@ import json
 import os
 import platform
 import re
+import resource
 import shutil
 import statistics
 import subprocess
@@ -42,6 +49,28 @@ def _packages(venv: Path) -> dict[str, str]:
     return {_normalised(k): v for k, v in json.loads(out.stdout).items()}
 
 
+STACK = "import torch, prefect, duckdb, s3fs, metaworld"
+
+
+def _bytecode_share(venv: Path) -> float:
+    """Of the venv's installed modules, the share with bytecode beside them."""
+    site = next(venv.glob("lib/python3*/site-packages"))
+    sources = sum(1 for _ in site.rglob("*.py"))
+    return round(sum(1 for _ in site.rglob("*.pyc")) / sources, 3)
+
+
+def _import_cpu(venv: Path) -> float:
+    """CPU seconds (user + system) of a fresh process importing STACK, median of 3; no bytecode written."""
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1", "MUJOCO_GL": "egl"}
+    seconds = []
+    for _ in range(3):
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        subprocess.run([venv / "bin/python", "-c", STACK], env=env, check=True, capture_output=True)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        seconds.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+    return round(statistics.median(seconds), 2)
+
+
 def _install(rev: str, root: Path) -> dict:
     """A clone of `rev`, its `make install` timed; what it installed."""
     clone = root / rev
@@ -53,74 +82,101 @@ def _install(rev: str, root: Path) -> dict:
     seconds = time.monotonic() - started
     if proc.returncode != 0:
         raise SystemExit(f"make install at {rev} failed:\n{proc.stderr[-3000:]}")
-    packages = _packages(clone / ".venv")
+    venv = clone / ".venv"
+    packages, bytecode, import_cpu = _packages(venv), _bytecode_share(venv), _import_cpu(venv)
     shutil.rmtree(clone)
-    return {"rev": rev, "seconds": round(seconds, 1), "packages": packages}
+    return {
+        "rev": rev,
+        "seconds": round(seconds, 1),
+        "packages": packages,
+        "bytecode": bytecode,
+        "import_cpu_s": import_cpu,
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before", default="56d40ee", help="the revision to compare with (pip alone)")
+    parser.add_argument(
+        "--before",
+        nargs="+",
+        default=["56d40ee", "e6001b8"],
+        help="revisions to compare with (defaults: pip for everything; uv without bytecode)",
+    )
     parser.add_argument("--rounds", type=int, default=1)
     args = parser.parse_args()
     head = subprocess.run(
         ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
     ).stdout.strip()
+    revs = [*args.before, head]
     load_start = os.getloadavg()[0]
     rounds = []
     with tempfile.TemporaryDirectory(prefix="bench-install-") as tmp:
         for i in range(args.rounds):
-            order = (args.before, head) if i % 2 == 0 else (head, args.before)
+            order = revs[i % len(revs) :] + revs[: i % len(revs)]  # each recipe first in turn
             results = {r["rev"]: r for r in (_install(rev, Path(tmp) / str(i)) for rev in order)}
             rounds.append(results)
             print(
-                f"round {i + 1}: {args.before} {results[args.before]['seconds']} s, "
-                f"{head} {results[head]['seconds']} s",
+                f"round {i + 1}: "
+                + "; ".join(
+                    f"{rev} {r['seconds']} s, import CPU {r['import_cpu_s']} s" for rev, r in results.items()
+                ),
                 flush=True,
             )
-    before_s = round(statistics.median(r[args.before]["seconds"] for r in rounds), 1)
-    after_s = round(statistics.median(r[head]["seconds"] for r in rounds), 1)
-    old, new = rounds[0][args.before]["packages"], rounds[0][head]["packages"]
-    only_old = sorted(set(old) - set(new))
-    only_new = sorted(set(new) - set(old))
+
+    def median(rev: str, field: str) -> float:
+        return round(statistics.median(r[rev][field] for r in rounds), 2)
+
+    base = args.before[0]
+    old, new = rounds[0][base]["packages"], rounds[0][head]["packages"]
+    only_old, only_new = sorted(set(old) - set(new)), sorted(set(new) - set(old))
     other_version = sorted(f"{k} {old[k]} → {new[k]}" for k in set(old) & set(new) if old[k] != new[k])
+    recipes = {
+        rev: {
+            "seconds": median(rev, "seconds"),
+            "rounds": [r[rev]["seconds"] for r in rounds],
+            "bytecode_share": rounds[0][rev]["bytecode"],
+            "import_cpu_s": median(rev, "import_cpu_s"),
+            "torch": rounds[0][rev]["packages"].get("torch"),
+            "packages": len(rounds[0][rev]["packages"]),
+        }
+        for rev in revs
+    }
     record = {
         "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "load_average": [round(load_start, 1), round(os.getloadavg()[0], 1)],
-        "before": args.before,
         "head": head,
-        "rounds": [{rev: r["seconds"] for rev, r in rd.items()} for rd in rounds],
-        "before_s": before_s,
-        "head_s": after_s,
-        "ratio": round(after_s / before_s, 2),
-        "torch": [old.get("torch"), new.get("torch")],
-        "packages": [len(old), len(new)],
+        "recipes": recipes,
         "only_before": only_old,
         "only_head": only_new,
         "other_version": other_version,
     }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "install.json").write_text(json.dumps(record, indent=2) + "\n")
+    h = recipes[head]
     lines = [
         "# `make install` on a fresh clone (bench_install.py)",
         "",
         f"{record['date']}; {record['machine']}, load average {record['load_average'][0]} at the start, "
         f"{record['load_average'][1]} at the end. No pip or uv cache; median of {args.rounds} round(s), "
-        "recipes alternating.",
+        "recipes taking turns to go first. *Import CPU*: `" + STACK + "` in a fresh process of the new venv, "
+        "with PYTHONDONTWRITEBYTECODE=1 (our machines set it), median of 3.",
         "",
-        "| recipe | seconds | rounds |",
-        "|---|---|---|",
-        f"| {args.before} (pip for everything) | {before_s} | "
-        + ", ".join(str(r[args.before]["seconds"]) for r in rounds)
-        + " |",
-        f"| {head} (pip for uv and torch, uv for the project) | {after_s} | "
-        + ", ".join(str(r[head]["seconds"]) for r in rounds)
-        + " |",
+        "| revision | install s | rounds | modules with bytecode | import CPU s | install × HEAD | import × HEAD |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for rev, r in recipes.items():
+        lines.append(
+            f"| {rev}{' (HEAD)' if rev == head else ''} | {r['seconds']} | {', '.join(map(str, r['rounds']))} | "
+            f"{r['bytecode_share']:.0%} | {r['import_cpu_s']} | {round(h['seconds'] / r['seconds'], 2)} | "
+            f"{round(h['import_cpu_s'] / r['import_cpu_s'], 2)} |"
+        )
+    lines += [
         "",
-        f"{head} / {args.before}: **{record['ratio']}×**. torch: {old.get('torch')} / {new.get('torch')}; "
-        f"{len(old)} / {len(new)} packages. Only before: {', '.join(only_old) or 'none'}. Only at {head}: "
-        f"{', '.join(only_new) or 'none'}. Other versions: {', '.join(other_version) or 'none'}.",
+        f"torch: {', '.join(str(r['torch']) for r in recipes.values())}; packages: "
+        f"{', '.join(str(r['packages']) for r in recipes.values())}. Against {base}: only before "
+        f"{', '.join(only_old) or 'none'}; only at {head} {', '.join(only_new) or 'none'}; other versions "
+        f"{', '.join(other_version) or 'none'}.",
     ]
     (RESULTS / "install.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
