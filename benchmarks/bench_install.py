@@ -162,12 +162,14 @@ def main() -> None:
         "recipes taking turns to go first. *Import CPU*: `" + STACK + "` in a fresh process of the new venv, "
         "with PYTHONDONTWRITEBYTECODE=1 (our machines set it), median of 3.",
         "",
-        "| revision | install s | rounds | modules with bytecode | import CPU s | install × HEAD | import × HEAD |",
+        "| revision | install s | rounds | modules with bytecode | import CPU s | install × HEAD "
+        "| import × HEAD |",
         "|---|---|---|---|---|---|---|",
     ]
     for rev, r in recipes.items():
         lines.append(
-            f"| {rev}{' (HEAD)' if rev == head else ''} | {r['seconds']} | {', '.join(map(str, r['rounds']))} | "
+            f"| {rev}{' (HEAD)' if rev == head else ''} | {r['seconds']} | "
+            f"{', '.join(map(str, r['rounds']))} | "
             f"{r['bytecode_share']:.0%} | {r['import_cpu_s']} | {round(h['seconds'] / r['seconds'], 2)} | "
             f"{round(h['import_cpu_s'] / r['import_cpu_s'], 2)} |"
         )
