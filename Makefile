@@ -10,6 +10,12 @@ export PREFECT_SERVER_ANALYTICS_ENABLED := false
 export DO_NOT_TRACK := 1
 export PREFECT_HOME ?= $(CURDIR)/.prefect
 export PREFECT_LOGGING_LEVEL ?= WARNING
+# Python caches each module's bytecode as it first imports it. Our machines set PYTHONDONTWRITEBYTECODE,
+# and neither installer below compiles ahead: with it, every process a study or the suite starts would
+# compile torch, Prefect and the rest from source again, about twice the CPU of an import
+# (benchmarks/results/install.md). Compiling only what is imported, once, is cheaper than compiling
+# every installed module at install time.
+unexport PYTHONDONTWRITEBYTECODE
 
 # Where torch's CPU build comes from: PyTorch's CPU wheel index, searched beside PyPI for torch alone
 # (PyPI's Linux torch is the multi-GB CUDA build). `make install TORCH_CUDA=1` (or `TORCH_INDEX=`)
@@ -19,7 +25,7 @@ ifeq ($(TORCH_CUDA),1)
 TORCH_INDEX :=
 endif
 
-.PHONY: install bytecode run test lint bench clean
+.PHONY: install run test lint bench clean
 
 $(STAMP): pyproject.toml
 	scripts/install_system_deps.sh
@@ -31,23 +37,16 @@ $(STAMP): pyproject.toml
 	# over PyPI's 2.13.0, and where that index cannot be reached pip falls back to the other indexes
 	# (this machine's own wheels among them) after a few retries for this one package. uv then keeps it
 	# (it satisfies the project's range) and adds its dependencies with the project's.
-	# Both compile what they install to bytecode: where PYTHONDONTWRITEBYTECODE is set (it is on our
-	# machines) nothing is cached at import, and every process the suite or a study starts would compile
-	# torch, Prefect and the rest from source again (about 2x the CPU of an import; benchmarks/results/install.md).
-	$(PY) -m pip install -q --no-deps $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) torch==2.13.0
-	$(PY) -m uv pip install -q --python $(PY) --compile-bytecode -e '.[dev]'
+	$(PY) -m pip install -q --no-deps --no-compile $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) torch==2.13.0
+	$(PY) -m uv pip install -q --python $(PY) -e '.[dev]'
 	touch $(STAMP)
 
 install: $(STAMP)
 
-# The project's own modules as bytecode, for the same reason (only those changed since are compiled again).
-bytecode: install
-	$(PY) -m compileall -q -j 0 capvector capvector_core capvector_stats flows tasks artifacts tests
-
-run: bytecode
+run: install
 	$(VENV)/bin/capvector study --preset study-control-hard-extraction-3seeds
 
-test: bytecode
+test: install
 	$(PY) -m ruff check .
 	# two workers for two cores, a test file each (three measured 1.12x slower: the suite is CPU-bound,
 	# docs/guide/reproducing.md); files in collection order, the longest first (tests/conftest.py LONGEST_FIRST)
