@@ -176,7 +176,7 @@ def main() -> None:
         "PYTHONDONTWRITEBYTECODE=1; a Makefile may unexport it): the first process, then the median of 3.",
         "",
         "| revision | install s | rounds | modules with bytecode after install | first import CPU s "
-        "| later imports CPU s | install × HEAD | later imports × HEAD |",
+        "| later imports CPU s | install, HEAD / this | later imports, HEAD / this |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for rev, r in recipes.items():
