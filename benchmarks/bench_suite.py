@@ -68,8 +68,8 @@ def main() -> None:
         f"start, {record['load_average'][1]} at the end. No pip or uv download cache.",
         "",
         f"**{record['total_s']} s in all** (CI's budget: 900 s): install and ruff "
-        f"{record['before_suite_s']} s, the suite {suite_s} s; {record['passed']} passed. The tests' durations add up to "
-        f"{record['worker_s']} worker-seconds on 2 workers.",
+        f"{record['before_suite_s']} s, the suite {suite_s} s; {record['passed']} passed. "
+        f"The tests' durations add up to {record['worker_s']} worker-seconds on 2 workers.",
         "",
         "| test file | worker-seconds | share |",
         "|---|---|---|",
