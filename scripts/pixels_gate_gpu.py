@@ -303,8 +303,8 @@ def parse_args() -> argparse.Namespace:
     return args
 
 
-def main() -> None:
-    args = parse_args()
+def settings(args: argparse.Namespace) -> dict:
+    """The scale's sizes, with what the command line overrides."""
     s = dict(SCALES[args.scale])
     if args.downstream_steps:
         steps = args.downstream_steps
@@ -313,42 +313,63 @@ def main() -> None:
         s[key] = getattr(args, key) or s[key]
     if args.scale != "tiny":
         s["extraction"], s["downstream"] = TASK_SETS[args.tasks]
-    pixels = args.observation == "pixels"
-    policy = POLICY if pixels else STATE_POLICY
-    observation = {"obs_mode": "pixels", "image_size": 64} if pixels else {"obs_mode": "state"}
-    aux_base = AUX.model_copy(update={"name": args.objective})
-    depth = args.objective == "spatial_depth"  # per-patch xyz is only rendered when its objective reads it
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "episodes.jsonl").unlink(missing_ok=True)
-    runs: dict[str, dict] = {}
+    s["down_episodes"] = args.downstream_episodes or s["episodes"][2]
+    return s
 
-    def demos(split: str, tasks: list[str], episodes: int, depth: bool, seed_offset: int = 0) -> str:
-        """Collects a split and saves it under the work folder, where training processes load it."""
-        t = time.perf_counter()
-        data = collect_demos(
-            DemoConfig(
-                tasks=tasks,
-                episodes_per_task=episodes,
-                horizon=s["horizon"],
-                workers=args.workers + args.train_procs,
-                patch_xyz=depth,
-                patch_grid=4,
-                seed_offset=seed_offset,
-                **observation,
-            )
-        )
-        print(f"[{stamp()}] demos {split}: {len(data)} frames in {time.perf_counter() - t:.1f} s", flush=True)
-        return str(data.save(args.work / "data" / split, overwrite=True))
 
-    def fit_all(jobs: list[tuple], on_done) -> None:
-        """Trains `jobs` (name, init, data, config, heldout) in the training pool; `on_done` per run."""
+def collect(
+    args: argparse.Namespace, s: dict, observation: dict, split: str, tasks: list[str], **demo
+) -> str:
+    """Collects a split (`demo`: episodes_per_task, patch_xyz, seed_offset) and saves it under the work
+    folder, where training processes load it."""
+    t = time.perf_counter()
+    workers = args.workers + args.train_procs
+    data = collect_demos(
+        DemoConfig(tasks=tasks, horizon=s["horizon"], workers=workers, patch_grid=4, **demo, **observation)
+    )
+    print(f"[{stamp()}] demos {split}: {len(data)} frames in {time.perf_counter() - t:.1f} s", flush=True)
+    return str(data.save(args.work / "data" / split, overwrite=True))
+
+
+def collect_splits(
+    args: argparse.Namespace, s: dict, observation: dict, depth: bool
+) -> dict[str, str | None]:
+    """pretrain, extraction, its held-out episodes and downstream: each split's saved folder (None for
+    the extraction splits with --no-extraction). Per-patch xyz only where the objective reads it."""
+    pre_n, ext_n, _ = s["episodes"]
+    splits: dict[str, str | None] = {
+        "pretrain": collect(args, s, observation, "pretrain", s["pretrain"], episodes_per_task=pre_n),
+        "extraction": None,
+        "heldout": None,
+    }
+    if not args.no_extraction:
+        ext = dict(episodes_per_task=ext_n, patch_xyz=depth)
+        splits["extraction"] = collect(args, s, observation, "extraction", s["extraction"], **ext)
+        offset = DemoConfig(tasks=s["extraction"], episodes_per_task=ext_n).n_units * UNIT_SEEDS
+        held = dict(episodes_per_task=HELDOUT_EPISODES, patch_xyz=depth, seed_offset=offset)
+        splits["heldout"] = collect(args, s, observation, "heldout", s["extraction"], **held)
+    down = dict(episodes_per_task=s["down_episodes"], patch_xyz=depth)
+    splits["downstream"] = collect(args, s, observation, "downstream", s["downstream"], **down)
+    return splits
+
+
+class Trainings:
+    """Trains jobs (name, init, data, config, heldout) in the training pool, keeping each run's summary."""
+
+    def __init__(self, pool: ProcessPoolExecutor, policy: dict, work: Path):
+        self.pool, self.policy, self.work, self.runs = pool, policy, work, {}
+
+    def fit_all(self, jobs: list[tuple], on_done) -> None:
+        """Every job to the pool at once; `on_done(name, {step: checkpoint path})` as each one finishes."""
         futures = [
-            trainers.submit(train_job, name, policy, init, data, config.model_dump(), str(args.work), held)
+            self.pool.submit(
+                train_job, name, self.policy, init, data, config.model_dump(), str(self.work), held
+            )
             for name, init, data, config, held in jobs
         ]
         for future in as_completed(futures):
             name, paths, summary = future.result()
-            runs[name] = summary
+            self.runs[name] = summary
             print(
                 f"[{stamp()}] trained {name}: {summary['steps_per_s']:.1f} steps/s, "
                 f"loss {summary['final_loss']:.4f}"
@@ -357,105 +378,126 @@ def main() -> None:
             )
             on_done(name, paths)
 
-    pre_n, ext_n, down_n = s["episodes"]
-    down_n = args.downstream_episodes or down_n
-    pre = demos("pretrain", s["pretrain"], pre_n, depth=False)
-    ext = None if args.no_extraction else demos("extraction", s["extraction"], ext_n, depth=depth)
-    held = None
-    if ext is not None:
-        offset = DemoConfig(tasks=s["extraction"], episodes_per_task=ext_n).n_units * UNIT_SEEDS
-        held = demos("heldout", s["extraction"], HELDOUT_EPISODES, depth=depth, seed_offset=offset)
-    down = demos("downstream", s["downstream"], down_n, depth=depth)
+
+def goal_sets(s: dict) -> dict[str, dict]:
+    """Where each evaluation's goals come from: D_down test goals, D_ext and D_down validation goals."""
+    horizon = s["eval_horizon"]
+    valid = dict(tasks=s["extraction"], goals=s["validation_goals"], seed_base=VALIDATION_SEED_BASE)
+    return {
+        "test": dict(tasks=s["downstream"], goals=s["test_goals"], seed_base=100_000, horizon=horizon),
+        "valid": dict(valid, horizon=horizon, split="validation"),
+        "valid_down": dict(valid, tasks=s["downstream"], horizon=horizon, split="validation"),
+    }
+
+
+def extract(
+    args, s: dict, trainings: Trainings, episodes: Episodes, splits: dict, starts: dict, aux_base
+) -> None:
+    """θ_ft^d and θ_ao^d for each draw: the same θ_pt, seed and batch order; snapshots at half for (a);
+    each final checkpoint rolled out on D_ext validation goals. Their paths go into `starts`."""
+    ext_steps, valid = s["extraction_steps"], goal_sets(s)["valid"]
+    ao = aux_base.model_copy(update={"weight": args.extraction_aux_weight})
+    extraction = [
+        (f"{arm}{draw}", starts["pt"], splits["extraction"], config, splits["heldout"])
+        for draw in ([] if splits["extraction"] is None else s["draws"])
+        for arm, aux in (("ft", None), ("ao", ao))
+        for config in [train_config(ext_steps, s["batch"], draw, aux, [ext_steps // 2], args.extraction_lr)]
+    ]
+
+    def extracted(name: str, paths: dict) -> None:
+        starts[name] = paths[ext_steps]
+        episodes.submit(paths[ext_steps], **valid, arm=name[:2], draw=int(name[2:]), seed=0, budget=0)
+
+    trainings.fit_all(extraction, extracted)
+
+
+def fine_tune(
+    args, s: dict, trainings: Trainings, episodes: Episodes, down: str, starts: dict, aux_base
+) -> None:
+    """The downstream arms on every seed: SFT and the auxiliary arm(s) from θ_pt, SFT from each θ_ft^d and
+    θ_ao^d (each start rolled out once), every budget's snapshot rolled out on test goals (and, to
+    choose among several aux weights, the aux arms' on D_down validation goals)."""
+    goals = goal_sets(s)
+    aux_arms = [
+        ("aux" if len(args.aux_weights) == 1 else f"aux@{w:g}", aux_base.model_copy(update={"weight": w}))
+        for w in args.aux_weights
+    ]
+    inits = [("sft", -1, starts["pt"], None)] + [(arm, -1, starts["pt"], aux) for arm, aux in aux_arms]
+    inits += [
+        (f"sft_from_{name[:2]}", int(name[2:]), path, None) for name, path in starts.items() if name != "pt"
+    ]
+    for arm, draw, init, _ in inits:
+        if arm.startswith("sft_from"):
+            episodes.submit(init, **goals["test"], arm=arm, draw=draw, seed=0, budget=0)
+    labels, downstream = {}, []
+    for arm, draw, init, aux in inits:
+        for seed in s["seeds"]:
+            name = f"{arm}-d{draw}-s{seed}"
+            labels[name] = dict(arm=arm, draw=draw, seed=seed)
+            config = train_config(s["downstream_steps"], s["batch"], seed, aux, s["budgets"][:-1])
+            downstream.append((name, init, down, config, None))
+
+    def finetuned(name: str, paths: dict) -> None:
+        label = labels[name]
+        for budget, path in paths.items():
+            episodes.submit(path, **goals["test"], **label, budget=budget)
+            if len(aux_arms) > 1 and label["draw"] == -1:  # the aux weight is chosen on validation goals
+                episodes.submit(path, **goals["valid_down"], **label, budget=budget)
+
+    trainings.fit_all(downstream, finetuned)
+
+
+def write_runs(args, s: dict, policy: dict, aux_base, runs: dict) -> None:
+    """runs.json: the settings every number came from, and each training run's summary."""
+    record = {
+        "scale": args.scale,
+        "observation": args.observation,
+        "settings": {k: v for k, v in s.items() if k != "down_episodes"},
+        "policy": policy,
+        "aux": aux_base.model_dump(),
+        "tasks": args.tasks,
+        "aux_weights": args.aux_weights,
+        "extraction_aux_weight": args.extraction_aux_weight,
+        "extraction_lr": args.extraction_lr,
+        "downstream_episodes": s["down_episodes"],
+        "train_procs": args.train_procs,
+        "runs": runs,
+        "wall_s": time.perf_counter() - START,
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+    }
+    (args.out / "runs.json").write_text(json.dumps(record, indent=1, default=str))
+
+
+def main() -> None:
+    args = parse_args()
+    s = settings(args)
+    pixels = args.observation == "pixels"
+    policy = POLICY if pixels else STATE_POLICY
+    observation = {"obs_mode": "pixels", "image_size": 64} if pixels else {"obs_mode": "state"}
+    aux_base = AUX.model_copy(update={"name": args.objective})
+    depth = args.objective == "spatial_depth"  # per-patch xyz is only rendered when its objective reads it
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "episodes.jsonl").unlink(missing_ok=True)
+    splits = collect_splits(args, s, observation, depth)
     with (
         ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool,
-        ProcessPoolExecutor(args.train_procs, mp_context=get_context("spawn")) as trainers,
+        ProcessPoolExecutor(args.train_procs, mp_context=get_context("spawn")) as trainer_pool,
     ):
         episodes = Episodes(args.out, pool, observation)
-        horizon = s["eval_horizon"]
-        test = dict(tasks=s["downstream"], goals=s["test_goals"], seed_base=100_000, horizon=horizon)
-        valid = dict(tasks=s["extraction"], goals=s["validation_goals"], seed_base=VALIDATION_SEED_BASE)
-        valid_down = dict(valid, tasks=s["downstream"], horizon=horizon, split="validation")
-        valid = dict(valid, horizon=horizon, split="validation")
+        trainings = Trainings(trainer_pool, policy, args.work)
         starts: dict[str, str] = {}
         pt_steps = s["pretrain_steps"]
-        fit_all(
-            [("pt", None, pre, train_config(pt_steps, s["batch"], 0, None), None)],
+        trainings.fit_all(
+            [("pt", None, splits["pretrain"], train_config(pt_steps, s["batch"], 0, None), None)],
             lambda name, paths: starts.update(pt=paths[pt_steps]),
         )
-        episodes.submit(starts["pt"], **test, arm="pt", draw=-1, seed=0, budget=0)
-
-        # θ_ft^d and θ_ao^d: the same θ_pt, seed and batch order; snapshots at half for (a)
-        ext_steps = s["extraction_steps"]
-        ao = aux_base.model_copy(update={"weight": args.extraction_aux_weight})
-        extraction = [
-            (f"{arm}{draw}", starts["pt"], ext, config, held)
-            for draw in ([] if ext is None else s["draws"])
-            for arm, aux in (("ft", None), ("ao", ao))
-            for config in [
-                train_config(ext_steps, s["batch"], draw, aux, [ext_steps // 2], args.extraction_lr)
-            ]
-        ]
-
-        def extracted(name: str, paths: dict) -> None:
-            starts[name] = paths[ext_steps]
-            episodes.submit(paths[ext_steps], **valid, arm=name[:2], draw=int(name[2:]), seed=0, budget=0)
-
-        fit_all(extraction, extracted)
-        aux_arms = [
-            ("aux" if len(args.aux_weights) == 1 else f"aux@{w:g}", aux_base.model_copy(update={"weight": w}))
-            for w in args.aux_weights
-        ]
-        inits = [("sft", -1, starts["pt"], None)] + [(arm, -1, starts["pt"], aux) for arm, aux in aux_arms]
-        inits += [
-            (f"sft_from_{name[:2]}", int(name[2:]), path, None)
-            for name, path in starts.items()
-            if name != "pt"
-        ]
-        for arm, draw, init, _ in inits:
-            if arm.startswith("sft_from"):
-                episodes.submit(init, **test, arm=arm, draw=draw, seed=0, budget=0)
-        labels = {}
-        downstream = []
-        for arm, draw, init, aux in inits:
-            for seed in s["seeds"]:
-                name = f"{arm}-d{draw}-s{seed}"
-                labels[name] = dict(arm=arm, draw=draw, seed=seed)
-                config = train_config(s["downstream_steps"], s["batch"], seed, aux, s["budgets"][:-1])
-                downstream.append((name, init, down, config, None))
-
-        def finetuned(name: str, paths: dict) -> None:
-            label = labels[name]
-            for budget, path in paths.items():
-                episodes.submit(path, **test, **label, budget=budget)
-                if len(aux_arms) > 1 and label["draw"] == -1:  # the aux weight is chosen on validation goals
-                    episodes.submit(path, **valid_down, **label, budget=budget)
-
-        fit_all(downstream, finetuned)
+        episodes.submit(starts["pt"], **goal_sets(s)["test"], arm="pt", draw=-1, seed=0, budget=0)
+        extract(args, s, trainings, episodes, splits, starts, aux_base)
+        fine_tune(args, s, trainings, episodes, splits["downstream"], starts, aux_base)
         left = sum(not f.done() for f in episodes.pending)
         print(f"[{stamp()}] training done; waiting for {left} evaluations", flush=True)
         episodes.wait()
-    (args.out / "runs.json").write_text(
-        json.dumps(
-            {
-                "scale": args.scale,
-                "observation": args.observation,
-                "settings": s,
-                "policy": policy,
-                "aux": aux_base.model_dump(),
-                "tasks": args.tasks,
-                "aux_weights": args.aux_weights,
-                "extraction_aux_weight": args.extraction_aux_weight,
-                "extraction_lr": args.extraction_lr,
-                "downstream_episodes": down_n,
-                "train_procs": args.train_procs,
-                "runs": runs,
-                "wall_s": time.perf_counter() - START,
-                "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
-            },
-            indent=1,
-            default=str,
-        )
-    )
+    write_runs(args, s, policy, aux_base, trainings.runs)
     print(f"[{stamp()}] done", flush=True)
 
 
