@@ -36,6 +36,13 @@ def filesystem(url: str) -> tuple[AbstractFileSystem, str]:
         return fs, path
 
 
+def make_folder(fs: AbstractFileSystem, path: str) -> None:
+    """A folder, on a local filesystem. An object store has no folders (a key needs no parent), and
+    s3fs's makedirs there costs a request (it looks the bucket up): nothing is done."""
+    if isinstance(fs, LocalFileSystem):
+        fs.makedirs(path, exist_ok=True)
+
+
 def store_url(home: str) -> str:
     return posixpath.join(str(home), "store")
 

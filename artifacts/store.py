@@ -360,16 +360,10 @@ class ArtifactStore:
         self.local = isinstance(self.fs, LocalFileSystem)
         self.root = os.path.abspath(root_path) if self.local else root_path.rstrip("/")
         self.cache_dir = Path(cache_dir) if cache_dir else home_mod.local_cache_dir(self.url) / "objects"
-        self._makedirs(self._p("objects"))
+        home_mod.make_folder(self.fs, self._p("objects"))
         # Called with every record read from an unsealed sidecar (see capvector.artifacts.api: it raises
         # CorruptArtifact when the catalogue recorded that artifact sealed, i.e. the seal was stripped).
         self.unsealed_guard: Callable[[ArtifactRecord], None] | None = None
-
-    def _makedirs(self, path: str) -> None:
-        """A folder, on a local store. An object store has no folders (a key needs no parent), and
-        s3fs's makedirs there costs a request (it looks the bucket up)."""
-        if self.local:
-            self.fs.makedirs(path, exist_ok=True)
 
     # ---------------------------------------------------------------- paths
     def _p(self, *parts: str) -> str:
@@ -403,7 +397,7 @@ class ArtifactStore:
 
     def _stage(self) -> str:
         tmp = self._p("tmp", uuid.uuid4().hex)
-        self._makedirs(tmp)
+        home_mod.make_folder(self.fs, tmp)
         return tmp
 
     @contextlib.contextmanager
@@ -446,7 +440,7 @@ class ArtifactStore:
         sidecar, written after this returns, is what makes the artifact visible."""
         final = self.object_path(artifact_id)
         if self.local:
-            self._makedirs(posixpath.dirname(final))
+            home_mod.make_folder(self.fs, posixpath.dirname(final))
             try:
                 os.rename(staged, final)
             except OSError as e:
@@ -738,7 +732,7 @@ class ArtifactStore:
             entries = []
             for rel, full in members:
                 dst = posixpath.join(staged, rel)
-                self._makedirs(posixpath.dirname(dst))
+                home_mod.make_folder(self.fs, posixpath.dirname(dst))
                 f, listed = _open_member(full, rel, src_dir)
                 with f:
                     digest, size = self._write_stream(_Bounded(f, listed + 1), dst)
@@ -1151,7 +1145,7 @@ class ArtifactStore:
 
     def put_run(self, run: RunRecord) -> None:
         """Create or update a run record (runs change state, so they are replaced, not content-addressed)."""
-        self._makedirs(self._p("runs"))
+        home_mod.make_folder(self.fs, self._p("runs"))
         self._write_small(self._run_path(run.flow_run_id), run.model_dump_json(indent=1).encode())
         self._note_change()
 
@@ -1184,7 +1178,7 @@ class ArtifactStore:
         writers of one key write the same answer (its lock, capvector.tasks.runtime.caching.step_lock,
         holds one machine's; on two machines the last PUT stands, each naming a verified artifact)."""
         path = self.index_entry_path(key)
-        self._makedirs(posixpath.dirname(path))
+        home_mod.make_folder(self.fs, posixpath.dirname(path))
         self._write_small(path, data)
 
     def index_entry(self, key: str) -> bytes | None:
@@ -1261,7 +1255,7 @@ class ArtifactStore:
                     result.kept.append(artifact_id)
                     continue
                 dest = self._p("quarantine", stamp, artifact_id)
-                self._makedirs(posixpath.dirname(dest))
+                home_mod.make_folder(self.fs, posixpath.dirname(dest))
                 self._move_tree(p, dest)
                 result.quarantined.append(dest)
         return result

@@ -1,8 +1,8 @@
-"""Requests a cold `capvector run --preset smoke` makes to an S3 home, by kind, for this code and for an
-earlier revision in the same session.
+"""Requests a cold `capvector run --preset smoke` (or `capvector study --preset study-smoke`) makes to an
+S3 home, by kind, for this code and for an earlier revision in the same session.
 
-Run: .venv/bin/python benchmarks/bench_s3_requests.py [--before REV]
-Writes benchmarks/results/s3_requests.{md,json}.
+Run: .venv/bin/python benchmarks/bench_s3_requests.py [--preset study-smoke] [--before REV]
+Writes benchmarks/results/s3_requests.{md,json} (smoke) or s3_requests_<preset>.{md,json}.
 
 The home is a bucket on a local moto server, whose request log is counted (method, and the query
 parameters that tell a listing from a read). On loopback a request costs moto ~5 ms of CPU; a real
@@ -54,8 +54,13 @@ def _kind(method: str, path: str) -> str:
     return f"{method} bucket" if bucket_only else f"{method} object"
 
 
-def cold_smoke(cwd: Path, env: dict[str, str], counter: _Requests) -> dict:
-    """One cold smoke run on a fresh bucket: its requests by kind, wall and CPU seconds."""
+def command_of(preset: str) -> str:
+    """`study` for a study preset, `run` for a recipe's."""
+    return "study" if preset.startswith("study-") else "run"
+
+
+def cold_run(cwd: Path, env: dict[str, str], counter: _Requests, preset: str) -> dict:
+    """One cold run of `preset` on a fresh bucket: its requests by kind, wall and CPU seconds."""
     import boto3
 
     bucket = f"bench-{uuid.uuid4().hex[:10]}"
@@ -64,7 +69,16 @@ def cold_smoke(cwd: Path, env: dict[str, str], counter: _Requests) -> dict:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-m", "capvector", "--home", f"s3://{bucket}/home", "run", "--preset", "smoke"],
+        [
+            sys.executable,
+            "-m",
+            "capvector",
+            "--home",
+            f"s3://{bucket}/home",
+            command_of(preset),
+            "--preset",
+            preset,
+        ],
         cwd=cwd,
         env=env,
         capture_output=True,
@@ -73,7 +87,7 @@ def cold_smoke(cwd: Path, env: dict[str, str], counter: _Requests) -> dict:
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
-        sys.exit(f"the smoke run failed:\n{proc.stderr[-3000:]}")
+        sys.exit(f"the {preset} run failed:\n{proc.stderr[-3000:]}")
     kinds = dict(counter.kinds.most_common())
     return {
         "requests": sum(kinds.values()),
@@ -85,8 +99,10 @@ def cold_smoke(cwd: Path, env: dict[str, str], counter: _Requests) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="smoke", help="smoke (a recipe run) or study-smoke (a study)")
     ap.add_argument("--before", default=None, help="also count the requests of this revision (a worktree)")
     args = ap.parse_args()
+    stem = "s3_requests" if args.preset == "smoke" else f"s3_requests_{args.preset.replace('-', '_')}"
 
     from moto_s3 import moto_s3
 
@@ -107,23 +123,26 @@ def main() -> None:
             **extra,
         }
 
-    result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "after": {}}
+    result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "preset": args.preset, "after": {}}
     with moto_s3():
-        result["after"] = cold_smoke(REPO, env("after"), counter)
+        result["after"] = cold_run(REPO, env("after"), counter, args.preset)
         if args.before:
             tree = work / "before-tree"
+            rev = ["git", "rev-parse", "--short", args.before]  # a name like HEAD, recorded as its commit
+            named = subprocess.run(rev, cwd=REPO, capture_output=True, text=True, check=True)
+            args.before = named.stdout.strip()
             add = ["git", "worktree", "add", "--detach", "-f", str(tree), args.before]
             subprocess.run(add, cwd=REPO, check=True)
             try:
-                result["before"] = cold_smoke(tree, env("before", PYTHONPATH=str(tree)), counter)
+                result["before"] = cold_run(tree, env("before", PYTHONPATH=str(tree)), counter, args.preset)
                 result["before"]["revision"] = args.before
             finally:
                 subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, check=False)
             result["ratio"] = round(result["after"]["requests"] / result["before"]["requests"], 2)
     print(json.dumps(result, indent=1))
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "s3_requests.json").write_text(json.dumps(result, indent=1) + "\n")
-    (RESULTS / "s3_requests.md").write_text(_markdown(result))
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1) + "\n")
+    (RESULTS / f"{stem}.md").write_text(_markdown(result))
 
 
 def _markdown(result: dict) -> str:
@@ -140,10 +159,15 @@ def _markdown(result: dict) -> str:
     was = f"**{before['requests']}** | " if before else ""
     total = f"| **all** | {was}**{after['requests']}** |\n"
     ratio = f"\nAfter / before: **{result['ratio']}×** the requests.\n" if before else ""
+    preset = result["preset"]
+    flags = ("" if preset == "smoke" else f" --preset {preset}") + (
+        f" --before {before['revision']}" if before else ""
+    )
     return (
-        "# Requests of a cold smoke run to an S3 home\n\n"
-        f"`benchmarks/bench_s3_requests.py{' --before ' + before['revision'] if before else ''}` on "
-        f"{result['machine']}: `capvector run --preset smoke` on a fresh bucket of a local moto server, "
+        f"# Requests of a cold {preset} run to an S3 home\n\n"
+        f"`benchmarks/bench_s3_requests.py{flags}` on "
+        f"{result['machine']}: `capvector {command_of(preset)} --preset {preset}` on a fresh bucket of a "
+        "local moto server, "
         "its request log counted. Counts are the figure to compare (times depend on load); a real object "
         "store takes ~30 ms a request.\n\n"
         + head
