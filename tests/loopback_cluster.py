@@ -120,13 +120,18 @@ def wait_for_executed(cluster: LoopbackCluster, before: dict[str, int], steps: i
 
 
 def check_smoke_run_with_an_s3_home(
-    cluster: LoopbackCluster, smoke_home, tmp_path: Path, while_running=None, retries: int = 0
+    cluster: LoopbackCluster,
+    smoke_home,
+    tmp_path: Path,
+    while_running=None,
+    retries: int = 0,
+    reruns: bool = True,
 ) -> subprocess.CompletedProcess:
     """The home on S3, the steps on the cluster's workers (each with its own local cache, as other
-    machines): the process pool's ids, lineage complete the moment the run returns, and a rerun, also
-    from a fresh driver that never saw the home, dispatches nothing. `while_running(proc)` interferes
-    with the first run (kills a worker), which then executes `retries` steps a second time; that run's
-    output is returned."""
+    machines): the process pool's ids, lineage complete the moment the run returns, and (`reruns`) a
+    rerun, also from a fresh driver that never saw the home, dispatches nothing. `while_running(proc)`
+    interferes with the first run (kills a worker), which then executes `retries` steps a second time;
+    that run's output is returned."""
     import boto3
 
     bucket = f"capvector-{uuid.uuid4().hex[:12]}"
@@ -160,7 +165,7 @@ def check_smoke_run_with_an_s3_home(
     # what the workers registered is in the driver's catalogue at once: the local run's lineage
     assert lineage(home, ids["report"], tmp_path / "driver-cache") == lineage(smoke_home[0], ids["report"])
 
-    for name, cache in (("rerun", "driver-cache"), ("fresh driver", "fresh-driver-cache")):
+    for name, cache in (("rerun", "driver-cache"), ("fresh driver", "fresh-driver-cache")) if reruns else ():
         before = cluster.executed()
         env = {"CAPVECTOR_CACHE": str(tmp_path / cache)}
         proc = run_cli("run", "--preset", "smoke", *runner, home=home, env=env, timeout=600)

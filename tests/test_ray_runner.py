@@ -150,13 +150,17 @@ def test_cuda_steps_run_only_on_the_gpu_node(ray_cluster):
 def test_smoke_run_with_an_s3_home_on_the_cluster_survives_a_killed_worker(ray_cluster, smoke_home, tmp_path):
     """The S3 smoke run of the Dask tests, with kill -9 of the worker process running a training step
     (its title is `ray::train` while it does): Ray starts the task again, the run ends with the process
-    pool's ids, and Ray's notice of the dead worker goes to stderr, not into the JSON on stdout."""
+    pool's ids, and Ray's notice of the dead worker goes to stderr, not into the JSON on stdout. The
+    Dask test's cached reruns are not repeated: a fully cached plan is answered before any runner is
+    built (tests/test_cli.py), so they would check the same code again at ~10 s each."""
     killed = []
 
     def kill_a_training_step(run: subprocess.Popen) -> None:
         killed.append(_kill_a_training_step(ray_cluster, run))
 
-    proc = check_smoke_run_with_an_s3_home(ray_cluster, smoke_home, tmp_path, kill_a_training_step, retries=1)
+    proc = check_smoke_run_with_an_s3_home(
+        ray_cluster, smoke_home, tmp_path, kill_a_training_step, retries=1, reruns=False
+    )
     assert killed[0] is not None, "no worker was caught running a training step"
     assert "(raylet)" in proc.stderr  # Ray's notice of the dead worker and the retry
 
