@@ -10,6 +10,7 @@ the sum of pytest's per-test durations (setup, call and teardown) of that file: 
 pytest-xdist workers share, not wall time.
 """
 
+import argparse
 import json
 import os
 import platform
@@ -28,6 +29,9 @@ TOP = 12
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--log", type=Path, help="also keep .ci/run's whole output (per-test durations) here")
+    args = ap.parse_args()
     head = subprocess.run(
         ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
     ).stdout.strip()
@@ -40,6 +44,8 @@ def main() -> None:
         proc = subprocess.run([str(clone / ".ci/run")], cwd=clone, env=env, capture_output=True, text=True)
         total_s = time.monotonic() - started
     out = proc.stdout + proc.stderr
+    if args.log:
+        args.log.write_text(out)
     summary = SUMMARY.search(out)
     if proc.returncode != 0 or summary is None:
         raise SystemExit(f".ci/run failed ({proc.returncode}):\n{out[-4000:]}")
