@@ -36,7 +36,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from capvector.artifacts.home import filesystem, is_local, make_folder
+from capvector.artifacts.home import filesystem, is_local
 
 SCRATCH_ENV = "CAPVECTOR_SCRATCH"
 MANIFEST = "checkpoint.json"
@@ -90,7 +90,7 @@ class CheckpointMirror:
 
     def _put(self, local: Path, rel: str) -> None:
         remote = self._p(rel)
-        make_folder(self.fs, posixpath.dirname(remote))
+        self.fs.makedirs(posixpath.dirname(remote), exist_ok=True)
         self.fs.put_file(str(local), remote)
 
     def save(self, step: int, checkpoint: Path, run_dir: Path) -> None:
