@@ -352,7 +352,10 @@ def test_a_gate_only_report_says_the_gate_passed_and_that_capvector_was_not_part
     from capvector.tasks.steps.study_analysis import StudyDesign, StudyReport
 
     def report(stage: str) -> StudyReport:
-        return StudyReport.model_construct(gate=None, design=StudyDesign.model_construct(stage=stage))
+        design = StudyDesign.model_construct(stage=stage, endpoint_budgets=[10, 20], final_budget=20)
+        return StudyReport.model_construct(gate=None, design=design, comparisons=[], designs_for_5_points={})
 
-    assert "declared gate-only" in "\n".join(_gate(report("gate")))
+    text = "\n".join(_gate(report("gate")))
+    assert "declared gate-only" in text
+    assert "| (c′) | SFT from θ_ao − SFT | — | **not settled** |" in text  # nothing compared: nothing read
     assert _gate(report("final")) == []

@@ -249,3 +249,30 @@ def test_an_adapter_arms_merge_error_is_reported_beside_its_held_out_loss(tmp_pa
     assert c.arm_mean == pytest.approx(0.26)  # the comparison uses the loss as trained, not the merge
     markdown = "\n".join(heldout_loss_section(report))
     assert "merge error" in markdown and "+0.2100" in markdown
+
+
+def test_a_gate_reads_each_budget_and_its_declared_rule(tmp_path):
+    """SFT from θ_ao far ahead of SFT at the first budget and level at the final one: the analysis
+    compares every budget, the gate's reading calls (c′) shown on the endpoint and the secondary "a
+    faster start, not a better end" shown; an interval wholly under the 5-point bar is a clean negative."""
+    from capvector.flows.study.report import faster_start, gate_reading
+
+    ws = Workspace(tmp_path / "home")
+    inputs, design = _study(ws, draws=[0, 1, 2], seeds=[0, 1, 2])
+    rng = np.random.default_rng(1)
+    for d in (0, 1, 2):
+        for s in (0, 1, 2):
+            for b, p in ((10, 0.95), (20, 0.3)):
+                key = TestEvaluation(arm="sft_from_ao", draw=d, seed=s, budget=b).key
+                inputs[key] = _evaluation(ws, f"fast {d} {s} {b}", p, rng)
+    report = analyse(ws, inputs, design.model_copy(update={"stage": "gate"}))
+    budgets = {c.budget for c in report.comparisons if (c.arm, c.baseline) == ("sft_from_ao", "sft")}
+    assert budgets == {ENDPOINT, 10, 20}
+    endpoint = report.comparison("sft_from_ao", "sft")
+    assert gate_reading(endpoint) == "shown"
+    assert faster_start(report, "sft_from_ao", "sft").startswith("shown: @10 ")
+    assert faster_start(report, "capvector", "sft").startswith("not shown")  # ahead at the final budget too
+    assert "sft_from_ao-sft" in report.designs_for_5_points
+    assert gate_reading(endpoint.model_copy(update={"ci_low": -3.0, "ci_high": 4.0})) == "clean negative"
+    assert gate_reading(endpoint.model_copy(update={"ci_low": -3.0, "ci_high": 6.0})) == "not settled"
+    assert gate_reading(None) == "not settled"

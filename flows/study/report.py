@@ -35,6 +35,10 @@ NAMES = {
     "sft_from_ft": "SFT from θ_ft",
 }
 VERDICT = {True: "holds", False: "fails", None: "not shown (CI includes 0)"}
+WORTH_CARRYING = 5.0
+"""Points: the smallest difference this project carries as a finding (the MDD every design is sized for,
+and the bar under which a whole interval reads as a clean negative)."""
+GATE_COMPARISONS = (("c′", "sft_from_ao", "sft"), ("c", "sft_from_ao", "sft_from_ft"))
 
 
 def sweep_markdown(doc: dict[str, Any]) -> str:
@@ -151,14 +155,14 @@ def _target(report: StudyReport, speed: dict[str, float]) -> list[str]:
 def _sizing(report: StudyReport, key: str, c: Comparison | None) -> list[str]:
     if c is None or not c.testable:
         return []
-    powered = "meets" if c.mdd <= 5 else "does not meet"
+    powered = "meets" if c.mdd <= WORTH_CARRYING else "does not meet"
     lines = [
         "",
         f"Minimum detectable difference of {NAMES[c.arm]} − {NAMES[c.baseline]} at the endpoint: "
         f"**{c.mdd:.1f} points** (80 % power, two-sided 5 %); this design {powered} the 5-point bar.",
     ]
     needed = report.designs_for_5_points.get(key)
-    if c.mdd > 5:
+    if c.mdd > WORTH_CARRYING:
         lines.append(
             f"From this study's variance components, an MDD ≤ 5 would take {needed.n_draws} draws × "
             f"{needed.n_seeds} seeds × {needed.n_goals_per_task} goals per task (MDD {needed.mdd:.1f})."
@@ -224,27 +228,89 @@ def _design(report: StudyReport) -> list[str]:
     ]
 
 
+def gate_reading(c: Comparison | None) -> str:
+    """The rule declared for the gate's comparisons: shown (interval above 0), clean negative (the whole
+    interval below the bar a difference must clear to be carried), else not settled."""
+    if c is None or not c.testable or not c.reliable:
+        return "not settled"
+    if c.ci_low > 0:
+        return "shown"
+    return "clean negative" if c.ci_high < WORTH_CARRYING else "not settled"
+
+
+def faster_start(report: StudyReport, arm: str, baseline: str) -> str:
+    """The declared secondary: ahead at the first budget (interval above 0) but not at the final one
+    (its interval includes 0 or lies below): "a faster start, not a better end"."""
+    first_budget, final_budget = min(report.design.endpoint_budgets), report.design.final_budget
+    first = report.comparison(arm, baseline, first_budget)
+    final = report.comparison(arm, baseline, final_budget)
+    if first is None or final is None or first_budget == final_budget:
+        return "not measured"
+    if not (first.testable and first.reliable and final.testable and final.reliable):
+        return "not readable"
+    shown = first.ci_low > 0 and final.ci_low <= 0
+    verdict = "shown" if shown else "not shown"
+    return f"{verdict}: @{first_budget} {_cell(first)}, @{final_budget} {_cell(final)}"
+
+
+def _gate_reading(report: StudyReport) -> list[str]:
+    """(c′) and (c) read by the declared rule, each with its MDD and the design that would settle it."""
+    lines = [
+        "",
+        "Reading of (c′) and (c) at the primary endpoint by the rule declared for the gate: **shown** when "
+        f"the 95 % interval's low end is above 0; **clean negative** when its high end is below "
+        f"{WORTH_CARRYING:.0f} points (whatever θ_ao adds is smaller than a difference worth carrying); "
+        f"**not settled** otherwise, or where the interval is not readable.",
+        "",
+        "| precondition | comparison | endpoint [95 % CI] (df) | reading | MDD | a design for MDD ≤ "
+        f"{WORTH_CARRYING:.0f} | faster start, not a better end |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for key, arm, baseline in GATE_COMPARISONS:
+        c = report.comparison(arm, baseline, ENDPOINT)
+        needed = report.designs_for_5_points.get(f"{arm}-{baseline}")
+        sized = (
+            "—"
+            if c is None or not c.testable
+            else "met by this design"
+            if c.mdd <= WORTH_CARRYING
+            else f"{needed.n_draws} draws × {needed.n_seeds} seeds × {needed.n_goals_per_task} goals (MDD "
+            f"{needed.mdd:.1f})"
+            if needed
+            else "—"
+        )
+        mdd = f"{c.mdd:.1f}" if c is not None and c.testable else "—"
+        lines.append(
+            f"| ({key}) | {NAMES[arm]} − {NAMES[baseline]} | {_cell(c)} | **{gate_reading(c)}** | {mdd} | "
+            f"{sized} | {faster_start(report, arm, baseline)} |"
+        )
+    return lines
+
+
 def _gate(report: StudyReport) -> list[str]:
     """Why CapVector's arms are missing: the gate stopped the study before them, or the study was
-    declared gate-only (its stage is the gate's and its gate passed)."""
-    if report.gate is None and report.design.stage == "gate":
-        return [
+    declared gate-only (its stage is the gate's and its gate passed); at the gate stage, how (c′) and (c)
+    read by the declared rule."""
+    if report.design.stage != "gate" and report.gate is None:
+        return []
+    if report.gate is None:
+        lines = [
             "",
             "## Gate: preconditions (c) and (c′) shown",
             "",
             "This study was declared gate-only: it tests the preconditions and ends at its gate. "
             "CapVector's arms (θ_meta, the orthogonal loss, the null vector) are not part of it.",
         ]
-    if report.gate is None:
-        return []
-    return [
-        "",
-        "## Gate: the question is untestable here",
-        "",
-        report.gate,
-        "",
-        "CapVector's arms (θ_meta, the orthogonal loss, the null vector) were not run.",
-    ]
+    else:
+        lines = [
+            "",
+            "## Gate: the question is untestable here",
+            "",
+            report.gate,
+            "",
+            "CapVector's arms (θ_meta, the orthogonal loss, the null vector) were not run.",
+        ]
+    return lines + (_gate_reading(report) if report.design.stage == "gate" else [])
 
 
 def _headline(report: StudyReport) -> list[str]:
@@ -276,16 +342,20 @@ def _other_comparisons(report: StudyReport) -> list[str]:
     """The comparisons that locate the effect (where SFT starts from, the orthogonal loss)."""
     if not report.design.draws:  # a study whose arms need no γ: its comparisons are the forms section's
         return []
-    final = report.design.final_budget
-    lines = ["", "## Other comparisons", "", f"| comparison | endpoint | @ {final} |", "|---|---|---|"]
+    budgets = sorted(set(report.design.endpoint_budgets) | {report.design.final_budget})
+    lines = [
+        "",
+        "## Other comparisons",
+        "",
+        "| comparison | endpoint | " + " | ".join(f"@ {b}" for b in budgets) + " |",
+        "|---|---|" + "---|" * len(budgets),
+    ]
     others = (("aux", "sft"), ("sft_from_ao", "sft_from_ft"), ("sft_from_ao", "sft"), ("meta_sft", "sft"))
     if "meta_sft_dose" in report.design.arms:
         others += (("meta_sft_dose", "sft"), ("meta_sft_dose", "meta_sft"))
     for arm, baseline in others:
-        lines.append(
-            f"| {NAMES[arm]} − {NAMES[baseline]} | {_cell(report.comparison(arm, baseline, ENDPOINT))} | "
-            f"{_cell(report.comparison(arm, baseline, final))} |"
-        )
+        cells = [_cell(report.comparison(arm, baseline, b)) for b in (ENDPOINT, *budgets)]
+        lines.append(f"| {NAMES[arm]} − {NAMES[baseline]} | " + " | ".join(cells) + " |")
     return lines
 
 

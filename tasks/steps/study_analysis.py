@@ -548,9 +548,11 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
         )
     episodes_ext = _episodes(workspace, ext) if ext else pd.DataFrame(columns=episodes.columns)
     budgets = sorted(b for b in episodes["budget"].unique() if b != ENDPOINT)
+    # every budget of the endpoint, not only the final one: a declared secondary ("a faster start, not a
+    # better end") reads the first budget against the last
     comparisons = [
         c
-        for budget in (ENDPOINT, design.final_budget)
+        for budget in (ENDPOINT, *sorted(set(design.endpoint_budgets) | {design.final_budget}))
         for arm, baseline in compared_pairs(design)
         if (c := _compare(episodes, arm, baseline, budget, design.n_boot)) is not None
     ]
@@ -601,7 +603,7 @@ def analyse(workspace: Workspace, inputs: dict[str, str], design: StudyDesign) -
                 at_least=(max(c.n_draws, 1), c.n_seeds, c.n_goals // max(c.n_tasks, 1)),
             )
             for c in comparisons
-            if c.budget == ENDPOINT and c.arm in ("capvector", "aux")
+            if c.budget == ENDPOINT and c.arm in ("capvector", "aux", "sft_from_ao")
         },
     )
 
