@@ -275,4 +275,6 @@ def test_a_gate_reads_each_budget_and_its_declared_rule(tmp_path):
     assert "sft_from_ao-sft" in report.designs_for_5_points
     assert gate_reading(endpoint.model_copy(update={"ci_low": -3.0, "ci_high": 4.0})) == "clean negative"
     assert gate_reading(endpoint.model_copy(update={"ci_low": -3.0, "ci_high": 6.0})) == "not settled"
+    both = gate_reading(endpoint.model_copy(update={"ci_low": 0.5, "ci_high": 4.5}))
+    assert both.startswith("shown") and "clean negative" in both
     assert gate_reading(None) == "not settled"

@@ -233,9 +233,10 @@ def gate_reading(c: Comparison | None) -> str:
     interval below the bar a difference must clear to be carried), else not settled."""
     if c is None or not c.testable or not c.reliable:
         return "not settled"
-    if c.ci_low > 0:
-        return "shown"
-    return "clean negative" if c.ci_high < WORTH_CARRYING else "not settled"
+    below_bar = c.ci_high < WORTH_CARRYING
+    if c.ci_low > 0:  # both rules can hold: a difference shown, and shown to be small
+        return "shown, and below the bar (a clean negative too)" if below_bar else "shown"
+    return "clean negative" if below_bar else "not settled"
 
 
 def faster_start(report: StudyReport, arm: str, baseline: str) -> str:
