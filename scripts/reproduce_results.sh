@@ -31,7 +31,7 @@
 #   conclusive    -> docs/studies/study_conclusive.md     issue 39's declared study (declared_conclusive.md), run from
 #                    its pinned revision d117758 in a temporary worktree (the code its report was made with)
 #   conclusive-gate -> docs/studies/study_conclusive_gate.md  issue 39's powered gate (declared_conclusive_gate.md),
-#                    from its pinned revision 058261c, the code it has run with since 2026-12-08 (its
+#                    from its pinned revision 3f77d4d, the code it has run with since 2026-12-08 (its
 #                    steps' caches are found only with that code; it computes its own pretraining, demos and draws)
 #   state         -> docs/studies/study_state.md          the earlier state testbed (no positive control)
 #   pixels        -> docs/studies/study_pixels.md         camera images, per-patch depth targets (GPU-sized; the
@@ -90,7 +90,7 @@ case "$preset" in
       --set name=study-control-hard-extraction-flow --report docs/studies/study_control_hard_extraction_flow.md ;;
   conclusive | conclusive-gate)
     # the pinned revision's own code (capvector/__init__.py maps the package onto the worktree's folders)
-    if [ "$preset" = conclusive ]; then rev=d117758; else rev=058261c; fi
+    if [ "$preset" = conclusive ]; then rev=d117758; else rev=3f77d4d; fi
     tree="$(mktemp -d)/src"
     git worktree add --detach "$tree" "$rev"
     trap 'git worktree remove --force "$tree"' EXIT
